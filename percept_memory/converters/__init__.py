@@ -1,0 +1,41 @@
+"""Type-driven codec between model objects and BSON documents. No I/O, no MongoDB client."""
+
+import numpy as np
+
+from .arrays import NDArrayCodec
+from .blobs import BLOB_KEY, ConversionError, DecodeContext, EncodeContext, content_id
+from .codec import (
+    TYPE_KEY,
+    ForeignCodec,
+    Unknown,
+    decode,
+    encode,
+    foreign_codec_names,
+    register_codec,
+)
+from .images import ImageCodec
+from .registry import Typed, aliases_of, class_for, name_of, register_type, registered_types
+
+register_codec(np.ndarray, NDArrayCodec())
+
+__all__ = [
+    "BLOB_KEY",
+    "TYPE_KEY",
+    "ConversionError",
+    "DecodeContext",
+    "EncodeContext",
+    "ForeignCodec",
+    "ImageCodec",
+    "Typed",
+    "Unknown",
+    "aliases_of",
+    "class_for",
+    "content_id",
+    "decode",
+    "encode",
+    "foreign_codec_names",
+    "name_of",
+    "register_codec",
+    "register_type",
+    "registered_types",
+]

@@ -1,0 +1,447 @@
+"""The generic codec: model objects <-> BSON-ready documents, driven by type annotations.
+
+Written once for every present and future type (thesis 3.2.1.3: "a generic, templated set of
+classes to offer fully automatic conversion between all types, present and future, and
+MongoDB"). For each registered class a plan is compiled from its field annotations the first
+time it is used; values whose annotation needs no conversion (str, int, float, bool, ObjectId,
+...) are copied without a function call, which keeps the codec fast.
+
+Types the annotations cannot describe (numpy arrays, images) get a foreign codec, registered
+once per Python type with `register_codec` (thesis 3.1.2, FeatureStructureConversion).
+"""
+
+from __future__ import annotations
+
+import enum
+import re
+import types
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, Protocol
+
+from bson import ObjectId
+from pydantic import BaseModel, model_validator
+
+from .blobs import ConversionError, DecodeContext, EncodeContext
+from .registry import Typed, class_for, name_of
+
+TYPE_KEY = "_type"
+
+
+class ForeignCodec(Protocol):
+    """Conversion of one Python type that is not described by field annotations alone."""
+
+    name: str  # written as `_type`, so tagged values decode without an annotation
+
+    def encode(self, value: Any, ctx: EncodeContext) -> dict: ...
+
+    def decode(self, doc: dict, ctx: DecodeContext) -> Any: ...
+
+
+_foreign_by_class: dict[type, ForeignCodec] = {}
+_foreign_by_name: dict[str, ForeignCodec] = {}
+
+
+def register_codec(cls: type, codec: ForeignCodec) -> None:
+    """Use `codec` for every value of type `cls` (exactly that type)."""
+    _foreign_by_class[cls] = codec
+    _foreign_by_name[codec.name] = codec
+    _field_codecs.clear()
+
+
+def foreign_codec_names() -> set[str]:
+    """The `_type` names written by foreign codecs (e.g. "ndarray")."""
+    return set(_foreign_by_name)
+
+
+class Unknown(Typed):
+    """A stored object whose `_type` this program does not know (or cannot read).
+
+    `fields` is the stored document as it was read, `_type` where it stood, and it writes
+    back unchanged, so data written by a newer version, or by RoboSherlock, is never lost.
+    """
+
+    type_name: str
+    fields: dict[str, Any]
+    problem: str | None = None  # why a known type could not be read, if that is the case
+
+    @model_validator(mode="after")
+    def _fields_carry_the_type(self) -> Unknown:
+        if self.fields.get(TYPE_KEY) != self.type_name:
+            self.fields = {TYPE_KEY: self.type_name, **self.fields}
+        return self
+
+
+# --- encoding and decoding of tagged documents --------------------------------------------
+
+
+def encode(value: Typed, ctx: EncodeContext | None = None) -> dict:
+    """A registered model object as a document ready for `bson.encode` / pymongo."""
+    return _encode_object(value, ctx or EncodeContext())
+
+
+def decode(doc: Mapping, ctx: DecodeContext | None = None) -> Any:
+    """The object a tagged document describes; `Unknown` when its `_type` is not registered."""
+    return _decode_tagged(doc, ctx or DecodeContext())
+
+
+def _encode_object(value: Any, ctx: EncodeContext) -> dict:
+    cls = type(value)
+    foreign = _foreign_by_class.get(cls)
+    if foreign is not None:
+        ctx.type_names.add(foreign.name)
+        return foreign.encode(value, ctx)
+    if cls is Unknown:
+        ctx.type_names.add(value.type_name)
+        return _encode_unknown(value)
+    plan = _plan(cls)
+    ctx.type_names.add(plan.name)
+    return plan.encode(value, ctx)
+
+
+def _decode_tagged(doc: Mapping, ctx: DecodeContext) -> Any:
+    if not isinstance(doc, Mapping) or TYPE_KEY not in doc:
+        raise ConversionError(f"expected a document with {TYPE_KEY!r}, got {_describe(doc)}")
+    name = doc[TYPE_KEY]
+    foreign = _foreign_by_name.get(name)
+    if foreign is not None:
+        return foreign.decode(doc, ctx)
+    cls = class_for(name)
+    if cls is None:
+        return Unknown.model_construct(type_name=name, fields=dict(doc))
+    try:
+        return _plan(cls).decode(doc, ctx)
+    except ConversionError as error:
+        # Reading never crashes: keep what is stored, say why it could not be read.
+        return Unknown.model_construct(type_name=name, fields=dict(doc), problem=str(error))
+
+
+def _encode_unknown(value: Unknown) -> dict:
+    """The stored document again, byte for byte: `_type` keeps its place among the fields."""
+    if TYPE_KEY not in value.fields:
+        return {TYPE_KEY: value.type_name, **value.fields}
+    doc = dict(value.fields)
+    doc[TYPE_KEY] = value.type_name
+    return doc
+
+
+def _describe(value: Any) -> str:
+    return type(value).__name__
+
+
+# --- per-class plans ------------------------------------------------------------------------
+
+
+@dataclass(slots=True)
+class _Field:
+    key: str  # name in the document (the pydantic alias when there is one)
+    attr: str  # attribute name on the object
+    codec: FieldCodec
+    required: bool
+
+
+class _Plan:
+    """How to encode and decode one registered class, compiled from its annotations."""
+
+    def __init__(self, cls: type[Typed]):
+        name = name_of(cls)
+        if name is None:
+            raise ConversionError(
+                f"{cls.__qualname__} is not a registered type; decorate it with register_type"
+            )
+        self.cls = cls
+        self.name = name
+        self.fields = [
+            _Field(info.alias or attr, attr, _codec_for(info.annotation), info.is_required())
+            for attr, info in cls.model_fields.items()
+        ]
+        self.keys = frozenset(f.key for f in self.fields) | {TYPE_KEY}
+
+    def encode(self, obj: Typed, ctx: EncodeContext) -> dict:
+        doc: dict[str, Any] = {TYPE_KEY: self.name}
+        values = obj.__dict__
+        for f in self.fields:
+            value = values[f.attr]
+            encoder = f.codec.encode
+            if encoder is None or value is None:
+                doc[f.key] = value
+                continue
+            try:
+                doc[f.key] = encoder(value, ctx)
+            except (ConversionError, TypeError, ValueError) as error:
+                raise ConversionError(f"{self.name}.{f.key}: {error}") from error
+        unknown = obj.__pydantic_private__.get("_unknown_fields") if obj.__pydantic_private__ else None
+        if unknown:
+            for key, value in unknown.items():
+                doc.setdefault(key, value)
+        return doc
+
+    def decode(self, doc: Mapping, ctx: DecodeContext) -> Typed:
+        values: dict[str, Any] = {}
+        for f in self.fields:
+            if f.key not in doc:
+                if f.required:
+                    raise ConversionError(f"{self.name}: required field {f.key!r} is missing")
+                continue
+            value = doc[f.key]
+            decoder = f.codec.decode
+            if decoder is None or value is None:
+                values[f.attr] = value
+                continue
+            try:
+                values[f.attr] = decoder(value, ctx)
+            except (ConversionError, TypeError, ValueError, KeyError) as error:
+                raise ConversionError(f"{self.name}.{f.key}: {error}") from error
+        obj = self.cls.model_construct(**values)
+        if len(doc) > len(values) + 1:
+            unknown = {k: v for k, v in doc.items() if k not in self.keys}
+            if unknown:
+                obj._unknown_fields = unknown
+        return obj
+
+
+_plans: dict[type, _Plan] = {}
+
+
+def _plan(cls: type) -> _Plan:
+    plan = _plans.get(cls)
+    if plan is None:
+        plan = _plans[cls] = _Plan(cls)
+    return plan
+
+
+# --- field codecs, one per annotation -------------------------------------------------------
+
+Encoder = Callable[[Any, EncodeContext], Any]
+Decoder = Callable[[Any, DecodeContext], Any]
+
+
+@dataclass(frozen=True, slots=True)
+class FieldCodec:
+    """Conversion of the values of one annotation. `None` en/decoder: stored as they are."""
+
+    encode: Encoder | None
+    decode: Decoder | None
+    owns: Callable[[Any], bool]  # is this Python value one of ours (to pick a Union arm)?
+    accepts: Callable[[Any], bool]  # is this stored value one of ours (to pick a Union arm)?
+
+
+_field_codecs: dict[Any, FieldCodec] = {}
+
+_AS_STORED = (str, int, float, bool, bytes, ObjectId, type(None))
+
+
+def _codec_for(annotation: Any) -> FieldCodec:
+    try:
+        return _field_codecs[annotation]
+    except KeyError:
+        codec = _field_codecs[annotation] = _build_codec(annotation)
+        return codec
+    except TypeError:  # unhashable annotation metadata
+        return _build_codec(annotation)
+
+
+def _build_codec(annotation: Any) -> FieldCodec:
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return _codec_for(args[0])
+    if annotation is Any or annotation is object:
+        return FieldCodec(_encode_any, _decode_any, lambda v: True, lambda v: True)
+    if origin is typing.Literal:
+        allowed = set(args)
+        return FieldCodec(None, None, lambda v: v in allowed, lambda v: v in allowed)
+    if origin in (typing.Union, types.UnionType):
+        return _union_codec(args)
+    if origin in (list, Sequence, set, frozenset):
+        return _sequence_codec(_codec_for(args[0]) if args else _codec_for(Any), origin)
+    if origin is tuple:
+        return _tuple_codec(args)
+    if origin in (dict, Mapping):
+        return _dict_codec(_codec_for(args[1]) if args else _codec_for(Any))
+    if annotation in (list, tuple, set, dict):
+        return _codec_for(annotation[Any] if annotation is not tuple else tuple[Any, ...])
+    if isinstance(annotation, type):
+        return _class_codec(annotation)
+    raise ConversionError(f"cannot store values annotated {annotation!r}")
+
+
+def _class_codec(cls: type) -> FieldCodec:
+    if cls is float:
+        return FieldCodec(
+            None, None, lambda v: isinstance(v, float), lambda v: isinstance(v, (float, int))
+        )
+    if cls is datetime:
+        return FieldCodec(None, _decode_datetime, _isinstance(datetime), _isinstance(datetime))
+    if issubclass(cls, enum.Enum):
+        values = {member.value for member in cls}
+        return FieldCodec(
+            lambda v, ctx: v.value,
+            lambda v, ctx: cls(v),
+            _isinstance(cls),
+            lambda v: v in values,
+        )
+    if issubclass(cls, _AS_STORED):
+        return FieldCodec(None, None, _isinstance(cls), _isinstance(cls))
+    foreign = _foreign_by_class.get(cls)
+    if foreign is not None:
+        return FieldCodec(
+            _encode_object,
+            foreign.decode,
+            _isinstance(cls),
+            lambda v: isinstance(v, Mapping) and v.get(TYPE_KEY) == foreign.name,
+        )
+    if issubclass(cls, BaseModel):
+        return FieldCodec(
+            _encode_object,
+            _decode_tagged,
+            _isinstance(BaseModel),
+            lambda v: isinstance(v, Mapping) and TYPE_KEY in v,
+        )
+    raise ConversionError(f"no codec for {cls.__qualname__}; register one with register_codec")
+
+
+def _isinstance(cls: type) -> Callable[[Any], bool]:
+    return lambda v: isinstance(v, cls)
+
+
+def _decode_datetime(value: datetime, ctx: DecodeContext) -> datetime:
+    return value if value.tzinfo else value.replace(tzinfo=UTC)
+
+
+def _union_codec(arms: tuple) -> FieldCodec:
+    codecs = [_codec_for(arm) for arm in arms if arm is not type(None)]
+    if len(codecs) == 1:  # Optional[X]: None is stored as None by the plans
+        return codecs[0]
+    if all(c.encode is None and c.decode is None for c in codecs):
+        return FieldCodec(
+            None, None, lambda v: any(c.owns(v) for c in codecs),
+            lambda v: any(c.accepts(v) for c in codecs),
+        )
+
+    def encode_union(value, ctx):
+        for c in codecs:
+            if c.owns(value):
+                return value if c.encode is None else c.encode(value, ctx)
+        raise ConversionError(f"{_describe(value)} matches no type of {arms}")
+
+    def decode_union(value, ctx):
+        for c in codecs:
+            if c.accepts(value):
+                return value if c.decode is None else c.decode(value, ctx)
+        raise ConversionError(f"stored {_describe(value)} matches no type of {arms}")
+
+    return FieldCodec(
+        encode_union, decode_union,
+        lambda v: any(c.owns(v) for c in codecs), lambda v: any(c.accepts(v) for c in codecs),
+    )
+
+
+def _sequence_codec(item: FieldCodec, origin: Any) -> FieldCodec:
+    make = set if origin is set else frozenset if origin is frozenset else list
+    python_types = (set, frozenset) if make is not list else (list, tuple)
+    enc, dec = item.encode, item.decode
+    if enc is None and dec is None and make is list:
+        return FieldCodec(None, None, _isinstance(python_types), _isinstance(list))
+    return FieldCodec(
+        (lambda v, ctx: list(v)) if enc is None
+        else lambda v, ctx: [x if x is None else enc(x, ctx) for x in v],
+        (lambda v, ctx: make(v)) if dec is None
+        else lambda v, ctx: make(x if x is None else dec(x, ctx) for x in v),
+        _isinstance(python_types),
+        _isinstance(list),
+    )
+
+
+def _tuple_codec(args: tuple) -> FieldCodec:
+    if len(args) == 2 and args[1] is Ellipsis:
+        item = _codec_for(args[0])
+        enc, dec = item.encode, item.decode
+        return FieldCodec(
+            (lambda v, ctx: list(v)) if enc is None
+            else lambda v, ctx: [x if x is None else enc(x, ctx) for x in v],
+            (lambda v, ctx: tuple(v)) if dec is None
+            else lambda v, ctx: tuple(x if x is None else dec(x, ctx) for x in v),
+            _isinstance(tuple),
+            _isinstance(list),
+        )
+    items = [_codec_for(arg) for arg in args]
+
+    def encode_tuple(value, ctx):
+        if len(value) != len(items):
+            raise ConversionError(f"expected {len(items)} values, got {len(value)}")
+        return [x if c.encode is None or x is None else c.encode(x, ctx)
+                for c, x in zip(items, value, strict=True)]
+
+    def decode_tuple(value, ctx):
+        if len(value) != len(items):
+            raise ConversionError(f"expected {len(items)} stored values, got {len(value)}")
+        return tuple(x if c.decode is None or x is None else c.decode(x, ctx)
+                     for c, x in zip(items, value, strict=True))
+
+    return FieldCodec(encode_tuple, decode_tuple, _isinstance(tuple), _isinstance(list))
+
+
+# MongoDB field names may not start with "$" and "." means a path: such keys are %-escaped.
+_ESCAPES = {"%": "%25", ".": "%2E", "$": "%24", "\x00": "%00"}
+_UNESCAPES = {v: k for k, v in _ESCAPES.items()}
+_ESCAPED = re.compile("|".join(_UNESCAPES))
+
+
+def escape_key(key: str) -> str:
+    if not isinstance(key, str):
+        raise ConversionError(f"dictionary keys must be strings, got {_describe(key)}")
+    if any(c in key for c in _ESCAPES):
+        return "".join(_ESCAPES.get(c, c) for c in key)
+    return key
+
+
+def unescape_key(key: str) -> str:
+    if "%" not in key:
+        return key
+    return _ESCAPED.sub(lambda match: _UNESCAPES[match.group(0)], key)
+
+
+def _dict_codec(value_codec: FieldCodec) -> FieldCodec:
+    enc, dec = value_codec.encode, value_codec.decode
+    return FieldCodec(
+        lambda v, ctx: {
+            escape_key(k): (x if enc is None or x is None else enc(x, ctx)) for k, x in v.items()
+        },
+        lambda v, ctx: {
+            unescape_key(k): (x if dec is None or x is None else dec(x, ctx)) for k, x in v.items()
+        },
+        _isinstance(dict),
+        lambda v: isinstance(v, Mapping) and TYPE_KEY not in v,
+    )
+
+
+# --- values annotated Any: converted by what they are ---------------------------------------
+
+
+def _encode_any(value: Any, ctx: EncodeContext) -> Any:
+    if isinstance(value, _AS_STORED) or isinstance(value, datetime):
+        return value
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, BaseModel) or type(value) in _foreign_by_class:
+        return _encode_object(value, ctx)
+    if isinstance(value, (list, tuple, set, frozenset)):
+        return [_encode_any(x, ctx) for x in value]
+    if isinstance(value, Mapping):
+        return {escape_key(k): _encode_any(x, ctx) for k, x in value.items()}
+    raise ConversionError(f"cannot store a {_describe(value)}; register a codec for it")
+
+
+def _decode_any(value: Any, ctx: DecodeContext) -> Any:
+    if isinstance(value, list):
+        return [_decode_any(x, ctx) for x in value]
+    if isinstance(value, Mapping):
+        if TYPE_KEY in value:
+            return _decode_tagged(value, ctx)
+        return {unescape_key(k): _decode_any(x, ctx) for k, x in value.items()}
+    if isinstance(value, datetime):
+        return _decode_datetime(value, ctx)
+    return value

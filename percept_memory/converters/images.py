@@ -1,0 +1,95 @@
+"""Images: lossless PNG by default, JPEG on request, raw bytes when PNG cannot hold them.
+
+The codec works for any image model with the fields `data` (numpy array), `encoding`
+(ROS-style: rgb8, bgr8, mono8, mono16, 32FC1, ...) and `format` ("png", "jpeg", "raw").
+PNG files are written with the right colour order, so a stored PNG opens correctly anywhere.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .arrays import decode_array_fields, encode_array_fields
+from .blobs import ConversionError, DecodeContext, EncodeContext
+
+PNG_COMPRESSION = 1  # fast; PNG is lossless at every level
+JPEG_QUALITY = 95
+
+
+def png_compatible(array: np.ndarray) -> bool:
+    """Can PNG hold this array bit-exactly? (8/16-bit native unsigned, 1, 3 or 4 channels.)"""
+    channels_ok = array.ndim == 2 or (array.ndim == 3 and array.shape[2] in (1, 3, 4))
+    return (
+        channels_ok
+        and array.dtype in (np.dtype(np.uint8), np.dtype(np.uint16))
+        and array.size > 0
+    )
+
+
+def _swaps_channels(encoding: str, array: np.ndarray) -> bool:
+    return encoding.startswith("rgb") and array.ndim == 3 and array.shape[2] in (3, 4)
+
+
+def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
+    """PNG or JPEG bytes of an image array."""
+    if _swaps_channels(encoding, array):
+        array = array[..., [2, 1, 0, 3][: array.shape[2]]]
+    if fmt == "png":
+        ok, buffer = cv2.imencode(".png", array, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+    elif fmt == "jpeg":
+        if array.dtype != np.uint8 or array.ndim == 3 and array.shape[2] == 4:
+            raise ConversionError("JPEG holds 8-bit grey or colour images only; use png")
+        ok, buffer = cv2.imencode(".jpg", array, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    else:
+        raise ConversionError(f"unknown image format {fmt!r}")
+    if not ok:
+        raise ConversionError(f"OpenCV could not encode the image as {fmt}")
+    return buffer.tobytes()
+
+
+def decompress(data: bytes, encoding: str, shape: list[int], dtype: str) -> np.ndarray:
+    """The image array back from PNG or JPEG bytes, in the shape and dtype it was stored with."""
+    array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise ConversionError("stored image data does not decode")
+    array = array.reshape(shape).astype(np.dtype(dtype), copy=False)
+    if _swaps_channels(encoding, array):
+        array = array[..., [2, 1, 0, 3][: array.shape[2]]].copy()
+    return array
+
+
+class ImageCodec:
+    """Foreign codec for an image model class (see module docstring)."""
+
+    def __init__(self, cls: type, name: str):
+        self.cls = cls
+        self.name = name
+
+    def encode(self, image: Any, ctx: EncodeContext) -> dict:
+        array, fmt = image.data, image.format
+        lossless_raw = fmt == "raw" or (fmt == "png" and not png_compatible(array))
+        stored_as = "raw" if lossless_raw else fmt
+        doc = {"_type": self.name, "encoding": image.encoding, "format": fmt, "stored_as": stored_as}
+        if stored_as == "raw":
+            doc.update(encode_array_fields(array, ctx))
+        else:
+            doc["dtype"] = array.dtype.str
+            doc["shape"] = list(array.shape)
+            doc["data"] = ctx.binary(compress(array, image.encoding, fmt))
+        return doc
+
+    def decode(self, doc: dict, ctx: DecodeContext) -> Any:
+        try:
+            if doc["stored_as"] == "raw":
+                array = decode_array_fields(doc, ctx)
+            else:
+                data = ctx.binary(doc["data"])
+                array = decompress(data, doc["encoding"], doc["shape"], doc["dtype"])
+            return self.cls.model_construct(
+                data=array, encoding=doc["encoding"], format=doc["format"]
+            )
+        except KeyError as error:
+            raise ConversionError(f"stored image lacks {error}") from error

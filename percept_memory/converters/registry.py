@@ -1,0 +1,64 @@
+"""Stable type names: the `_type` written into every stored document.
+
+A name is given once, where the class is defined (like RoboSherlock's type traits), and never
+changes, so documents written years ago still find their class. Aliases let foreign names
+(RoboSherlock's `rs.*`) resolve to our classes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TypeVar
+
+from pydantic import BaseModel, PrivateAttr
+
+T = TypeVar("T", bound=type)
+
+_class_by_name: dict[str, type] = {}
+_name_by_class: dict[type, str] = {}
+
+
+class Typed(BaseModel):
+    """Base of every stored model.
+
+    Keeps the fields a newer version of the program wrote that this version does not know,
+    so reading and writing back an object never loses them.
+    """
+
+    _unknown_fields: dict | None = PrivateAttr(default=None)
+
+
+def register_type(name: str, *, aliases: tuple[str, ...] = ()) -> Callable[[T], T]:
+    """Class decorator: store instances of the class under `_type` = `name`."""
+
+    def decorate(cls: T) -> T:
+        for key in (name, *aliases):
+            owner = _class_by_name.get(key)
+            if owner is not None and owner is not cls:
+                raise ValueError(f"type name {key!r} is already taken by {owner.__qualname__}")
+            _class_by_name[key] = cls
+        _name_by_class[cls] = name
+        return cls
+
+    return decorate
+
+
+def class_for(name: str) -> type | None:
+    """The class registered under a name or alias, or None when nobody registered it."""
+    return _class_by_name.get(name)
+
+
+def name_of(cls: type) -> str | None:
+    """The stable name of a registered class (exactly that class, not a parent's)."""
+    return _name_by_class.get(cls)
+
+
+def registered_types() -> dict[str, type]:
+    """Every registered class by its own name (aliases left out)."""
+    return {name: cls for cls, name in _name_by_class.items()}
+
+
+def aliases_of(cls: type) -> list[str]:
+    """The foreign names that resolve to `cls`."""
+    own = _name_by_class.get(cls)
+    return sorted(key for key, owner in _class_by_name.items() if owner is cls and key != own)

@@ -1,0 +1,170 @@
+"""AsyncMemoryStore: the MemoryStore API on pymongo's native async client (AsyncMongoClient).
+
+Same documents, same transactions, same guarantees as store.py; for asyncio code such as the
+enrichment workers and the web app.
+"""
+
+from __future__ import annotations
+
+from bson import ObjectId
+from pymongo import AsyncMongoClient
+from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+
+from percept_memory.converters import content_id
+
+from . import documents as docs
+from .errors import NotFound, StoreError, TooLarge, require_replica_set, too_large
+from .schema import COUNTED_COLLECTIONS, INDEXES, catalogue_entry
+from .settings import Settings
+from .store import CLIENT_OPTIONS, ClusterChange, StoreBase
+from .types import Annotation, Cluster, Scene
+
+
+class AsyncMemoryStore(StoreBase):
+    """The memory on one MongoDB database, for asyncio. Open with `await
+    AsyncMemoryStore.open()`."""
+
+    @classmethod
+    async def open(cls, settings: Settings | None = None) -> AsyncMemoryStore:
+        from .mongod import resolve_uri
+
+        settings = settings or Settings()
+        client = AsyncMongoClient(resolve_uri(settings), **CLIENT_OPTIONS)
+        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
+        await store.prepare()
+        return store
+
+    async def prepare(self) -> None:
+        require_replica_set(await self.client.admin.command("hello"))
+        for name, indexes in INDEXES.items():
+            await self.db[name].create_indexes(indexes)
+
+    async def close(self) -> None:
+        await self.client.close()
+
+    async def __aenter__(self) -> AsyncMemoryStore:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    async def put_scene(self, scene: Scene) -> docs.SceneIds:
+        """See MemoryStore.put_scene."""
+        ids = docs.assign_ids(scene)
+        written = docs.scene_documents(scene, self.gridfs_threshold)
+
+        async def work(session):
+            await self._insert(written, session)
+
+        try:
+            await self._transaction(work)
+        except (DuplicateKeyError, BulkWriteError) as error:
+            if await self.scenes.find_one({"_id": ids.scene_id}, {"_id": 1}) is None:
+                existing = await self.scenes.find_one(
+                    self._existing_scene_query(scene), {"_id": 1}
+                )
+                raise self._refusal(scene, existing, error) from None
+        except (DocumentTooLarge, OperationFailure) as error:
+            if not too_large(error):
+                raise
+            raise TooLarge(self.gridfs_threshold) from error
+        await self._catalogue(written.type_names)
+        return ids
+
+    async def get_scene(self, scene_id: ObjectId) -> Scene:
+        doc = await self.scenes.find_one({"_id": scene_id})
+        if doc is None:
+            raise NotFound("scene", scene_id)
+        cluster_docs = await self.clusters.find({"_id": {"$in": doc["clusters"]}}).to_list()
+        return docs.decode_scene(doc, cluster_docs, await self._blobs([doc, *cluster_docs]))
+
+    async def get_cluster(self, cluster_id: ObjectId) -> Cluster:
+        doc = await self.clusters.find_one({"_id": cluster_id})
+        if doc is None:
+            raise NotFound("cluster", cluster_id)
+        return docs.decode_cluster(doc, await self._blobs([doc]))
+
+    async def update_cluster(self, cluster: Cluster) -> None:
+        if cluster.id is None:
+            raise StoreError("the cluster has no id: store it as part of a scene first")
+        await self._rewrite_cluster(cluster.id, lambda stored: cluster)
+
+    async def add_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> ObjectId:
+        """See MemoryStore.add_annotation: idempotent by annotation id."""
+        annotation_id = annotation.ensure_id()
+        await self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotation))
+        return annotation_id
+
+    async def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
+        await self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
+
+    async def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange) -> None:
+        async def work(session) -> set[str]:
+            doc = await self.clusters.find_one({"_id": cluster_id}, session=session)
+            if doc is None:
+                raise NotFound("cluster", cluster_id)
+            changed = change(docs.decode_cluster(doc, await self._blobs([doc], session)))
+            if changed is None:
+                return set()
+            written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
+            await self._put_blobs(written.blobs, session)
+            await self.clusters.replace_one(
+                {"_id": cluster_id}, written.clusters[0], session=session
+            )
+            return written.type_names
+
+        await self._catalogue(await self._transaction(work))
+
+    async def put_blob(self, data: bytes) -> str:
+        blob_id = content_id(data)
+
+        async def work(session):
+            await self._put_blobs({blob_id: data}, session)
+
+        await self._transaction(work)
+        return blob_id
+
+    async def get_blob(self, blob_id: str) -> bytes:
+        return (await self._blobs_by_id([blob_id]))[blob_id]
+
+    async def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
+        for blob_id, data in blobs.items():
+            if await self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
+                file_doc, chunks = docs.gridfs_documents(blob_id, data)
+                await self.chunks.insert_many(chunks, session=session)
+                await self.files.insert_one(file_doc, session=session)
+
+    async def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
+        return await self._blobs_by_id(docs.blob_ids(stored), session)
+
+    async def _blobs_by_id(self, blob_ids: list[str], session=None) -> dict[str, bytes]:
+        if not blob_ids:
+            return {}
+        cursor = self.chunks.find({"files_id": {"$in": blob_ids}}, session=session)
+        return docs.joined_blobs(blob_ids, await cursor.to_list())
+
+    async def _insert(self, written: docs.Documents, session) -> None:
+        await self._put_blobs(written.blobs, session)
+        await self.scenes.insert_one(written.scene, session=session)
+        if written.clusters:
+            await self.clusters.insert_many(written.clusters, session=session)
+
+    async def _transaction(self, work):
+        async with self.client.start_session() as session:
+            return await session.with_transaction(work)
+
+    async def _catalogue(self, type_names: set[str]) -> None:
+        for name in self._not_yet_catalogued(type_names):
+            await self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+
+    async def catalogue(self) -> list[dict]:
+        return await self.types.find().sort("_id").to_list()
+
+    async def counts(self) -> dict:
+        present = set(await self.db.list_collection_names())
+        collections = {
+            name: await self.db[name].estimated_document_count() if name in present else 0
+            for name in COUNTED_COLLECTIONS
+        }
+        rows = await (await self.clusters.aggregate(docs.TYPE_COUNT_PIPELINE)).to_list()
+        return {"collections": collections, "types": {r["_id"]: r["count"] for r in rows}}

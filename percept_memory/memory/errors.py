@@ -1,0 +1,75 @@
+"""Errors of the memory, each saying what went wrong and what to do."""
+
+from __future__ import annotations
+
+from bson import ObjectId
+from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+
+
+class StoreError(RuntimeError):
+    """A request the store cannot carry out."""
+
+
+class NotFound(StoreError, KeyError):
+    def __init__(self, kind: str, key: object):
+        super().__init__(f"no {kind} {key}")
+        self.kind, self.key = kind, key
+
+    def __str__(self) -> str:
+        return self.args[0]
+
+
+class SceneExists(StoreError):
+    """A different scene with the same robot and timestamp is stored already."""
+
+    def __init__(self, robot: str, timestamp: int, existing_id: ObjectId):
+        super().__init__(
+            f"robot {robot!r} already has a scene at timestamp {timestamp} (id {existing_id})"
+        )
+        self.existing_id = existing_id
+
+
+def require_replica_set(hello: dict) -> None:
+    """Atomic scene writes need transactions, which need a replica set or a sharded cluster."""
+    if hello.get("setName") or hello.get("msg") == "isdbgrid":
+        return
+    raise StoreError(
+        "this MongoDB server is a standalone server; percept-memory needs a replica set "
+        "(a single-node one is fine) for atomic scene writes: start mongod with "
+        "--replSet rs0 and run rs.initiate() once, or unset MONGODB_URI to use the "
+        "embedded mongod"
+    )
+
+
+class DuplicateId(StoreError):
+    """An id in the write is already used by another stored document."""
+
+
+def duplicate_key(error: Exception) -> dict | None:
+    """The clashing key of a duplicate-key failure ({field: value}), or None for other errors."""
+    if isinstance(error, BulkWriteError):
+        first = (error.details.get("writeErrors") or [{}])[0]
+        return first.get("keyValue") if first.get("code") == 11000 else None
+    if isinstance(error, DuplicateKeyError):
+        return (error.details or {}).get("keyValue") or {"key": str(error)}
+    return None
+
+
+class TooLarge(StoreError):
+    """A document is over MongoDB's 16 MB limit."""
+
+    def __init__(self, threshold: int):
+        super().__init__(
+            "not stored: a document would exceed MongoDB's 16 MB limit; set "
+            f"PMEM_GRIDFS_THRESHOLD below {threshold} bytes so large values go to GridFS"
+        )
+
+
+BSON_OBJECT_TOO_LARGE = 10334
+
+
+def too_large(error: Exception) -> bool:
+    """Did the client or the server refuse a document for its size?"""
+    if isinstance(error, DocumentTooLarge):
+        return True
+    return isinstance(error, OperationFailure) and error.code == BSON_OBJECT_TOO_LARGE

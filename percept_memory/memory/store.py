@@ -1,0 +1,243 @@
+"""MemoryStore: scenes, clusters, annotations and blobs in MongoDB (synchronous API).
+
+Every write is one transaction: a scene, its clusters and its blobs are stored together or not
+at all, and an annotation appended to a stored cluster never half-lands. Ids are assigned before
+the write, so a retried write finds its own earlier success instead of storing twice.
+`AsyncMemoryStore` (async_store.py) is the same store on pymongo's native async API; both keep
+the document layout in documents.py and do only the I/O here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from bson import ObjectId
+from pymongo import MongoClient
+from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+
+from percept_memory.converters import content_id
+
+from . import documents as docs
+from .errors import (
+    DuplicateId,
+    NotFound,
+    SceneExists,
+    StoreError,
+    TooLarge,
+    duplicate_key,
+    too_large,
+    require_replica_set,
+)
+from .schema import (
+    CLUSTERS,
+    COUNTED_COLLECTIONS,
+    GRIDFS_CHUNKS,
+    GRIDFS_FILES,
+    INDEXES,
+    SCENES,
+    TYPES,
+    catalogue_entry,
+)
+from .settings import Settings
+from .types import Annotation, Cluster, Scene
+
+CLIENT_OPTIONS = {"tz_aware": True, "appname": "percept-memory"}
+ClusterChange = Callable[[Cluster], Cluster | None]
+
+
+class StoreBase:
+    """What the sync and async stores share: collections, settings, the catalogue memo."""
+
+    def __init__(self, client, db_name: str, *, gridfs_threshold: int):
+        self.client = client
+        self.db = client[db_name]
+        self.scenes = self.db[SCENES]
+        self.clusters = self.db[CLUSTERS]
+        self.types = self.db[TYPES]
+        self.files = self.db[GRIDFS_FILES]
+        self.chunks = self.db[GRIDFS_CHUNKS]
+        self.gridfs_threshold = gridfs_threshold
+        self._catalogued: set[str] = set()
+
+    def _not_yet_catalogued(self, type_names: set[str]) -> list[str]:
+        new = sorted(type_names - self._catalogued)
+        self._catalogued.update(new)
+        return new
+
+    @staticmethod
+    def _existing_scene_query(scene: Scene) -> dict:
+        return {"robot": scene.robot, "timestamp": scene.timestamp}
+
+    @staticmethod
+    def _refusal(scene: Scene, existing: dict | None, error: Exception) -> StoreError:
+        """Why a scene write hit a duplicate key, when it was not a retry of itself."""
+        if existing is not None:
+            return SceneExists(scene.robot, scene.timestamp, existing["_id"])
+        return DuplicateId(
+            f"scene {scene.id} was not stored: {duplicate_key(error)} is already used by "
+            "another stored document; give new objects no id (ids are assigned on store)"
+        )
+
+
+class MemoryStore(StoreBase):
+    """The memory, on one MongoDB database. Open with `MemoryStore.open()` (settings from the
+    environment; the embedded mongod unless MONGODB_URI is set)."""
+
+    @classmethod
+    def open(cls, settings: Settings | None = None) -> MemoryStore:
+        from .mongod import resolve_uri
+
+        settings = settings or Settings()
+        client = MongoClient(resolve_uri(settings), **CLIENT_OPTIONS)
+        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
+        store.prepare()
+        return store
+
+    def prepare(self) -> None:
+        """Check the server can do transactions and create the indexes (idempotent)."""
+        require_replica_set(self.client.admin.command("hello"))
+        for name, indexes in INDEXES.items():
+            self.db[name].create_indexes(indexes)
+
+    def close(self) -> None:
+        self.client.close()
+
+    def __enter__(self) -> MemoryStore:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- scenes -------------------------------------------------------------------------
+
+    def put_scene(self, scene: Scene) -> docs.SceneIds:
+        """Store a new scene with its clusters, all or nothing; ids are assigned in place.
+        Storing the same scene object again is a no-op (a retry); another scene of the same
+        robot at the same timestamp raises SceneExists."""
+        ids = docs.assign_ids(scene)
+        written = docs.scene_documents(scene, self.gridfs_threshold)
+        try:
+            self._transaction(lambda session: self._insert(written, session))
+        except (DuplicateKeyError, BulkWriteError) as error:
+            if self.scenes.find_one({"_id": ids.scene_id}, {"_id": 1}) is None:
+                existing = self.scenes.find_one(self._existing_scene_query(scene), {"_id": 1})
+                raise self._refusal(scene, existing, error) from None
+        except (DocumentTooLarge, OperationFailure) as error:
+            if not too_large(error):
+                raise
+            raise TooLarge(self.gridfs_threshold) from error
+        self._catalogue(written.type_names)
+        return ids
+
+    def get_scene(self, scene_id: ObjectId) -> Scene:
+        doc = self.scenes.find_one({"_id": scene_id})
+        if doc is None:
+            raise NotFound("scene", scene_id)
+        cluster_docs = list(self.clusters.find({"_id": {"$in": doc["clusters"]}}))
+        return docs.decode_scene(doc, cluster_docs, self._blobs([doc, *cluster_docs]))
+
+    # --- clusters and annotations -------------------------------------------------------
+
+    def get_cluster(self, cluster_id: ObjectId) -> Cluster:
+        doc = self.clusters.find_one({"_id": cluster_id})
+        if doc is None:
+            raise NotFound("cluster", cluster_id)
+        return docs.decode_cluster(doc, self._blobs([doc]))
+
+    def update_cluster(self, cluster: Cluster) -> None:
+        """Replace a stored cluster by the given version of it."""
+        if cluster.id is None:
+            raise StoreError("the cluster has no id: store it as part of a scene first")
+        self._rewrite_cluster(cluster.id, lambda stored: cluster)
+
+    def add_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> ObjectId:
+        """Append an annotation to a stored cluster. Idempotent: appending the same annotation
+        (same id) again changes nothing, so a retried enrichment job never duplicates."""
+        annotation_id = annotation.ensure_id()
+        self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotation))
+        return annotation_id
+
+    def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
+        """Replace the annotation with the same id on a stored cluster."""
+        self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
+
+    def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange) -> None:
+        """Read, change and write back one cluster in a transaction, keeping `search` current."""
+
+        def work(session) -> set[str]:
+            doc = self.clusters.find_one({"_id": cluster_id}, session=session)
+            if doc is None:
+                raise NotFound("cluster", cluster_id)
+            changed = change(docs.decode_cluster(doc, self._blobs([doc], session)))
+            if changed is None:
+                return set()
+            written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
+            self._put_blobs(written.blobs, session)
+            self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
+            return written.type_names
+
+        self._catalogue(self._transaction(work))
+
+    # --- blobs --------------------------------------------------------------------------
+
+    def put_blob(self, data: bytes) -> str:
+        """Store bytes in GridFS under their content hash; returns the blob id."""
+        blob_id = content_id(data)
+        self._transaction(lambda session: self._put_blobs({blob_id: data}, session))
+        return blob_id
+
+    def get_blob(self, blob_id: str) -> bytes:
+        return self._blobs_by_id([blob_id])[blob_id]
+
+    def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
+        for blob_id, data in blobs.items():
+            if self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
+                file_doc, chunks = docs.gridfs_documents(blob_id, data)
+                self.chunks.insert_many(chunks, session=session)
+                self.files.insert_one(file_doc, session=session)
+
+    def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
+        return self._blobs_by_id(docs.blob_ids(stored), session)
+
+    def _blobs_by_id(self, blob_ids: list[str], session=None) -> dict[str, bytes]:
+        if not blob_ids:
+            return {}
+        chunks = self.chunks.find({"files_id": {"$in": blob_ids}}, session=session)
+        return docs.joined_blobs(blob_ids, chunks)
+
+    # --- writing ------------------------------------------------------------------------
+
+    def _insert(self, written: docs.Documents, session) -> None:
+        self._put_blobs(written.blobs, session)
+        self.scenes.insert_one(written.scene, session=session)
+        if written.clusters:
+            self.clusters.insert_many(written.clusters, session=session)
+
+    def _transaction(self, work):
+        with self.client.start_session() as session:
+            return session.with_transaction(work)
+
+    def _catalogue(self, type_names: set[str]) -> None:
+        """Record the stored types in `types`, once per type per process."""
+        for name in self._not_yet_catalogued(type_names):
+            self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+
+    # --- the store as a whole -----------------------------------------------------------
+
+    def catalogue(self) -> list[dict]:
+        """The types present in the store, with their fields."""
+        return list(self.types.find().sort("_id"))
+
+    def counts(self) -> dict:
+        """Documents per collection and annotations/hypotheses per type."""
+        present = set(self.db.list_collection_names())
+        return {
+            "collections": {
+                name: self.db[name].estimated_document_count() if name in present else 0
+                for name in COUNTED_COLLECTIONS
+            },
+            "types": {
+                row["_id"]: row["count"]
+                for row in self.clusters.aggregate(docs.TYPE_COUNT_PIPELINE)
+            },
+        }

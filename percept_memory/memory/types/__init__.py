@@ -1,0 +1,45 @@
+"""The type system: every kind of thing percept-memory stores, each a registered pydantic model."""
+
+from percept_memory.converters import Unknown
+
+from .annotations import (
+    Annotation,
+    Barcode,
+    Classification,
+    ColorHistogram,
+    Detection,
+    FeatureVector,
+    Geometry,
+    GroundTruth,
+    Location,
+    Logo,
+    LogLine,
+    Product,
+    Relation,
+    SemanticColor,
+    Shape,
+    Text,
+    Tracking,
+    WebLookup,
+)
+from .base import (
+    Id,
+    Identifiable,
+    Model,
+    Timestamp,
+    datetime_from_timestamp,
+    stored_type,
+    timestamp_from_datetime,
+)
+from .hypotheses import Hypothesis, ImageROI, PointCluster, SpatialVolume
+from .raw import Box, CameraInfo, Image, NDArray, PointCloud, Pose, Quaternion, Transform, Vec3
+from .scene import Cluster, Scene
+
+__all__ = [
+    "Annotation", "Barcode", "Box", "CameraInfo", "Classification", "Cluster", "ColorHistogram",
+    "Detection", "FeatureVector", "Geometry", "GroundTruth", "Hypothesis", "Id", "Identifiable",
+    "Image", "ImageROI", "Location", "LogLine", "Logo", "Model", "NDArray", "PointCloud",
+    "PointCluster", "Pose", "Product", "Quaternion", "Relation", "Scene", "SemanticColor",
+    "Shape", "SpatialVolume", "Text", "Timestamp", "Tracking", "Transform", "Unknown", "Vec3",
+    "WebLookup", "datetime_from_timestamp", "stored_type", "timestamp_from_datetime",
+]

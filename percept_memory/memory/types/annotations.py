@@ -1,0 +1,317 @@
+"""Annotations: what annotators say about an object hypothesis (thesis 3.2.3).
+
+Adding a type is adding one class here (or anywhere) with `@stored_type`: storing, loading and
+querying by its fields follow from its annotations. A class may also say
+- `labels()`: the names it gives the object (searchable, used to name objects);
+- `texts()`: free text to make searchable;
+- `similarity(a, b)`: how alike two observations look by this kind of evidence, in [0, 1]
+  (identity resolution combines the kinds two observations share, thesis 6.1.2).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import AliasChoices, Field
+
+from .base import Identifiable, Timestamp, stored_type
+from .raw import Box, Finite, NDArray, Pose, Vec3
+
+Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class Annotation(Identifiable):
+    """Base of all annotations. `source` names the annotator that produced it."""
+
+    source: str = ""
+
+    def labels(self) -> list[str]:
+        return []
+
+    def texts(self) -> list[str]:
+        return []
+
+    @staticmethod
+    def similarity(a: Annotation, b: Annotation) -> float | None:
+        """None: this kind of annotation says nothing about whether two observations match."""
+        return None
+
+
+def _same_label(a: str | None, b: str | None) -> float | None:
+    if not a or not b:
+        return None
+    return 1.0 if a.strip().casefold() == b.strip().casefold() else 0.0
+
+
+def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
+    """Overlap of two discrete distributions given as name -> weight, normalised here."""
+    total_p, total_q = sum(p.values()), sum(q.values())
+    if total_p <= 0 or total_q <= 0:
+        return None
+    return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in p.keys() & q.keys()))
+
+
+def _words(text: str) -> set[str]:
+    return {w for w in "".join(c if c.isalnum() else " " for c in text.casefold()).split()}
+
+
+@stored_type("pm.annotation.Location")
+class Location(Annotation):
+    """Where the object is: the region of interest it was found in (e.g. counter_top_sink),
+    its position in the map frame, and how it relates to the region ("on")."""
+
+    region: str | None = None
+    position: Vec3 | None = None
+    frame: str = "map"
+    relation: str | None = None
+    pose: Pose | None = None  # pose relative to the region's frame, when known
+
+
+@stored_type("pm.annotation.Classification", aliases=("rs.annotation.Classification",))
+class Classification(Annotation):
+    """A classifier's verdict, with the per-class confidences when it gives them."""
+
+    class_name: str = Field(validation_alias=AliasChoices("class_name", "classname"))
+    confidence: Probability | None = None
+    classifier: str = ""
+    feature: str = Field(default="", validation_alias=AliasChoices("feature", "featurename"))
+    confidences: dict[str, Finite] = {}
+
+    def labels(self) -> list[str]:
+        return [self.class_name]
+
+    @staticmethod
+    def similarity(a: Classification, b: Classification) -> float | None:
+        if a.confidences and b.confidences:
+            return _bhattacharyya(a.confidences, b.confidences)
+        return _same_label(a.class_name, b.class_name)
+
+
+@stored_type("pm.annotation.Detection", aliases=("rs.annotation.Detection",))
+class Detection(Annotation):
+    """A detector found a known object (by name) in the hypothesis."""
+
+    name: str
+    confidence: Probability | None = None
+    box: Box | None = None
+
+    def labels(self) -> list[str]:
+        return [self.name]
+
+    @staticmethod
+    def similarity(a: Detection, b: Detection) -> float | None:
+        return _same_label(a.name, b.name)
+
+
+@stored_type("pm.annotation.Shape", aliases=("rs.annotation.Shape",))
+class Shape(Annotation):
+    """A primitive shape: box, cylinder, sphere, flat, ..."""
+
+    shape: str
+    confidence: Probability | None = None
+
+    def labels(self) -> list[str]:
+        return [self.shape]
+
+    @staticmethod
+    def similarity(a: Shape, b: Shape) -> float | None:
+        return _same_label(a.shape, b.shape)
+
+
+@stored_type("pm.annotation.SemanticColor")
+class SemanticColor(Annotation):
+    """Named colours with the share of the object's pixels each covers."""
+
+    ratios: dict[str, Annotated[float, Field(ge=0.0, le=1.0)]]
+
+    def labels(self) -> list[str]:
+        return [name for name, share in self.ratios.items() if share >= 0.2]
+
+    @staticmethod
+    def similarity(a: SemanticColor, b: SemanticColor) -> float | None:
+        if not a.ratios or not b.ratios:
+            return None
+        return sum(min(a.ratios[k], b.ratios[k]) for k in a.ratios.keys() & b.ratios.keys())
+
+
+@stored_type("pm.annotation.ColorHistogram")
+class ColorHistogram(Annotation):
+    """A colour histogram of the object's pixels (e.g. 16 x 16 hue-saturation bins)."""
+
+    histogram: NDArray
+    space: str = "HS"
+
+    @staticmethod
+    def similarity(a: ColorHistogram, b: ColorHistogram) -> float | None:
+        if a.space != b.space or a.histogram.shape != b.histogram.shape:
+            return None
+        p = np.clip(a.histogram.astype(float).ravel(), 0, None)
+        q = np.clip(b.histogram.astype(float).ravel(), 0, None)
+        if p.sum() <= 0 or q.sum() <= 0:
+            return None
+        return float(min(1.0, np.sqrt(p / p.sum() * q / q.sum()).sum()))
+
+
+@stored_type("pm.annotation.FeatureVector")
+class FeatureVector(Annotation):
+    """A named descriptor: VFH (308 floats), CNN features, ..."""
+
+    name: str
+    vector: NDArray
+
+    @staticmethod
+    def similarity(a: FeatureVector, b: FeatureVector) -> float | None:
+        if a.name != b.name or a.vector.shape != b.vector.shape:
+            return None
+        u, v = a.vector.astype(float).ravel(), b.vector.astype(float).ravel()
+        norm = np.linalg.norm(u) * np.linalg.norm(v)
+        if norm == 0:
+            return None
+        return float(np.clip(u @ v / norm, 0.0, 1.0))
+
+
+@stored_type("pm.annotation.Text")
+class Text(Annotation):
+    """Text read on the object (OCR)."""
+
+    text: str
+    confidence: Probability | None = None
+    box: Box | None = None
+    language: str | None = None
+
+    def texts(self) -> list[str]:
+        return [self.text]
+
+    @staticmethod
+    def similarity(a: Text, b: Text) -> float | None:
+        wa, wb = _words(a.text), _words(b.text)
+        if not wa or not wb:
+            return None
+        return len(wa & wb) / len(wa | wb)
+
+
+@stored_type("pm.annotation.Logo")
+class Logo(Annotation):
+    """A brand logo recognised on the object."""
+
+    brand: str
+    confidence: Probability | None = None
+    box: Box | None = None
+
+    def labels(self) -> list[str]:
+        return [self.brand]
+
+    @staticmethod
+    def similarity(a: Logo, b: Logo) -> float | None:
+        return _same_label(a.brand, b.brand)
+
+
+ProductValue = str | bool | int | float
+
+
+@stored_type("pm.annotation.Product")
+class Product(Annotation):
+    """A product matched in a registry: name, brand and free key-values (category, weight,
+    ingredients, perishability, ...)."""
+
+    name: str | None = None
+    brand: str | None = None
+    properties: dict[str, ProductValue] = {}
+
+    def labels(self) -> list[str]:
+        return [label for label in (self.name, self.brand) if label]
+
+    def texts(self) -> list[str]:
+        return [f"{key} {value}" for key, value in self.properties.items()]
+
+    @staticmethod
+    def similarity(a: Product, b: Product) -> float | None:
+        return _same_label(a.name, b.name)
+
+
+@stored_type("pm.annotation.Barcode")
+class Barcode(Annotation):
+    """A barcode read on the object."""
+
+    code: str
+    symbology: str = ""
+
+    def labels(self) -> list[str]:
+        return [self.code]
+
+    @staticmethod
+    def similarity(a: Barcode, b: Barcode) -> float | None:
+        return _same_label(a.code, b.code)
+
+
+@stored_type("pm.annotation.WebLookup", aliases=("rs.annotation.Goggles",))
+class WebLookup(Annotation):
+    """One result of a web image lookup (thesis 5.4): a category (text, logo, product, similar
+    image, ...), its title, the matched region and links."""
+
+    service: str = ""
+    category: str
+    title: str
+    box: Box | None = None
+    links: list[str] = []
+
+    def labels(self) -> list[str]:
+        return [self.title] if self.category in ("logo", "product") else []
+
+    def texts(self) -> list[str]:
+        return [self.title]
+
+
+@stored_type("pm.annotation.Tracking")
+class Tracking(Annotation):
+    """A tracking id given by a tracker (thesis 6.5); `source` names the tracker."""
+
+    tracking_id: int = Field(validation_alias=AliasChoices("tracking_id", "trackingID"))
+
+
+@stored_type("pm.annotation.GroundTruth")
+class GroundTruth(Annotation):
+    """The true class (and pose) of the object, from a labelled data set."""
+
+    class_name: str
+    pose: Pose | None = None
+
+    def labels(self) -> list[str]:
+        return [self.class_name]
+
+
+@stored_type("pm.annotation.Geometry")
+class Geometry(Annotation):
+    """Size and pose of the object's bounding box."""
+
+    size: Vec3 | None = None  # width, depth, height in metres
+    volume: Annotated[float, Field(ge=0)] | None = None
+    pose: Pose | None = None
+    distance_to_plane: Finite | None = None
+    semantic_size: str | None = None
+
+    def labels(self) -> list[str]:
+        return [self.semantic_size] if self.semantic_size else []
+
+
+@stored_type("pm.annotation.Relation")
+class Relation(Annotation):
+    """A row of the scene's relations table (thesis table 3.1): `predicate(a, b)` holds with
+    `probability`; `b` is None for unary predicates."""
+
+    predicate: str
+    a: str
+    b: str | None = None
+    probability: Probability = 1.0
+
+
+@stored_type("pm.annotation.LogLine")
+class LogLine(Annotation):
+    """A line of the scene's log: which annotator (`source`) said what, when, how long it took."""
+
+    message: str
+    level: Literal["debug", "info", "warning", "error"] = "info"
+    time: Timestamp | None = None
+    duration_ms: Annotated[float, Field(ge=0)] | None = None

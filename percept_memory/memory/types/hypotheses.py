@@ -1,0 +1,72 @@
+"""Object hypotheses (thesis 3.2.2): where in the data an object might be."""
+
+from __future__ import annotations
+
+from pydantic import Field, model_validator
+
+from .base import Model, stored_type
+from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3
+
+
+class Hypothesis(Model):
+    """Base of the ways to say "there may be an object here"."""
+
+
+PHASH_PATTERN = "^[0-9a-f]{16}$"
+
+
+@stored_type("pm.hypothesis.ImageROI")
+class ImageROI(Hypothesis):
+    """A region of a scene image, with its mask, the cropped pixels and their perceptual hash
+    (64-bit pHash as 16 hex digits) for fast appearance comparison."""
+
+    box: Box
+    image: str = "color"  # which of the scene's images the box refers to
+    mask: Image | None = None
+    crop: Image | None = None
+    phash: str | None = Field(default=None, pattern=PHASH_PATTERN)
+
+    @staticmethod
+    def similarity(a: ImageROI, b: ImageROI) -> float | None:
+        """1 - normalised Hamming distance of the perceptual hashes."""
+        if a.phash is None or b.phash is None:
+            return None
+        distance = (int(a.phash, 16) ^ int(b.phash, 16)).bit_count()
+        return 1.0 - distance / 64
+
+
+@stored_type("pm.hypothesis.PointCluster")
+class PointCluster(Hypothesis):
+    """A cluster of 3D points: its own small cloud, or indices into a scene cloud."""
+
+    points: PointCloud | None = None
+    indices: NDArray | None = None
+    cloud: str = "cloud"  # which scene cloud `indices` refer to
+
+    @model_validator(mode="after")
+    def _points_or_indices(self) -> PointCluster:
+        if self.points is None and self.indices is None:
+            raise ValueError("a point cluster needs points or indices")
+        return self
+
+
+@stored_type("pm.hypothesis.SpatialVolume")
+class SpatialVolume(Hypothesis):
+    """A volume in a frame: an axis-aligned box (min and max corner) or a sphere. Used when
+    something asserts an object without seeing it, e.g. after the robot put it down."""
+
+    frame: str = "map"
+    box_min: Vec3 | None = None
+    box_max: Vec3 | None = None
+    center: Vec3 | None = None
+    radius: Finite | None = Field(default=None, ge=0)
+
+    @model_validator(mode="after")
+    def _box_or_sphere(self) -> SpatialVolume:
+        box = self.box_min is not None and self.box_max is not None
+        sphere = self.center is not None and self.radius is not None
+        if box == sphere:
+            raise ValueError("give either box_min and box_max, or center and radius")
+        if box and any(lo > hi for lo, hi in zip(self.box_min, self.box_max, strict=True)):
+            raise ValueError("box_min must not exceed box_max")
+        return self

@@ -1,0 +1,149 @@
+"""Raw data types (thesis 3.2.1): arrays, images, point clouds, poses, camera intrinsics."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import Field, PlainSerializer, PlainValidator, WithJsonSchema, field_validator
+
+from percept_memory.converters import ImageCodec, register_codec
+
+from .base import Model, Timestamp, stored_type
+
+
+def _to_array(value: Any) -> np.ndarray:
+    array = value if isinstance(value, np.ndarray) else np.asarray(value)
+    if array.dtype.hasobject:
+        raise ValueError("arrays must hold numbers, not Python objects")
+    return array
+
+
+NDArray = Annotated[
+    np.ndarray,
+    PlainValidator(_to_array),
+    PlainSerializer(lambda array: array.tolist(), when_used="json"),
+    WithJsonSchema({"type": "array", "description": "numbers, nested by dimension"}),
+]
+"""A numpy array of numbers, stored exactly (dtype, shape, bytes)."""
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+"""x, y, z in metres."""
+Quaternion = tuple[Finite, Finite, Finite, Finite]
+"""x, y, z, w."""
+NonNegative = Annotated[int, Field(ge=0)]
+Box = tuple[NonNegative, NonNegative, NonNegative, NonNegative]
+"""An image rectangle: x, y, width, height in pixels."""
+
+
+@stored_type("pm.raw.Pose", aliases=("rs.tf.StampedPose",))
+class Pose(Model):
+    """A position and orientation in a named frame (tf-style, quaternion x, y, z, w)."""
+
+    translation: Vec3 = (0.0, 0.0, 0.0)
+    rotation: Quaternion = (0.0, 0.0, 0.0, 1.0)
+    frame: str = "map"
+    stamp: Timestamp | None = None
+
+    @field_validator("rotation")
+    @classmethod
+    def _unit_quaternion(cls, rotation: Quaternion) -> Quaternion:
+        norm = math.sqrt(sum(c * c for c in rotation))
+        if not 0.5 < norm < 1.5:
+            raise ValueError(f"rotation quaternion must have length 1, has {norm:.3g}")
+        return tuple(c / norm for c in rotation)  # type: ignore[return-value]
+
+    def matrix(self) -> np.ndarray:
+        """The 4x4 homogeneous transform of this pose."""
+        x, y, z, w = self.rotation
+        rotation = np.array([
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ])
+        result = np.eye(4)
+        result[:3, :3] = rotation
+        result[:3, 3] = self.translation
+        return result
+
+
+@stored_type("pm.raw.Transform", aliases=("rs.tf.StampedTransform",))
+class Transform(Pose):
+    """The pose of `child_frame` in `frame`, e.g. the camera in the map."""
+
+    child_frame: str
+
+
+@stored_type("pm.raw.CameraInfo")
+class CameraInfo(Model):
+    """Pinhole intrinsics, as in ROS sensor_msgs/CameraInfo."""
+
+    width: Annotated[int, Field(gt=0)]
+    height: Annotated[int, Field(gt=0)]
+    k: tuple[Finite, Finite, Finite, Finite, Finite, Finite, Finite, Finite, Finite]
+    d: list[Finite] = []
+    distortion_model: str = "plumb_bob"
+    frame: str = ""
+
+    @property
+    def focal(self) -> tuple[float, float]:
+        return self.k[0], self.k[4]
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        return self.k[2], self.k[5]
+
+
+@stored_type("pm.raw.Image")
+class Image(Model):
+    """An image array with its ROS-style encoding; stored as lossless PNG unless asked."""
+
+    data: NDArray
+    encoding: str = "bgr8"
+    format: Literal["png", "jpeg", "raw"] = "png"
+
+    @field_validator("data")
+    @classmethod
+    def _image_shaped(cls, data: np.ndarray) -> np.ndarray:
+        if data.ndim not in (2, 3):
+            raise ValueError(f"an image is 2-D or 3-D (height, width[, channels]), got {data.ndim}-D")
+        return data
+
+    @property
+    def height(self) -> int:
+        return self.data.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.data.shape[1]
+
+
+register_codec(Image, ImageCodec(Image, "pm.raw.Image"))
+
+
+@stored_type("pm.raw.PointCloud")
+class PointCloud(Model):
+    """Points in a frame: an (N, 3) float array or a structured array with fields x, y, z
+    (plus rgb, normals, ... as the sensor gives them)."""
+
+    points: NDArray
+    frame: str = ""
+
+    @field_validator("points")
+    @classmethod
+    def _has_xyz(cls, points: np.ndarray) -> np.ndarray:
+        names = points.dtype.names
+        if names is not None:
+            if not {"x", "y", "z"} <= set(names):
+                raise ValueError(f"structured points need fields x, y, z; got {names}")
+        elif points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must be (N, 3) or structured with x, y, z; got {points.shape}")
+        return points
+
+    def xyz(self) -> np.ndarray:
+        """The coordinates as an (N, 3) float array."""
+        if self.points.dtype.names is None:
+            return np.asarray(self.points, dtype=float)
+        return np.stack([self.points[c].astype(float) for c in "xyz"], axis=-1)

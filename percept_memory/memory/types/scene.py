@@ -1,0 +1,67 @@
+"""Clusters and scenes (thesis 3.2.4): an object hypothesis with everything said about it, and
+a timestamped snapshot of what the robot saw."""
+
+from __future__ import annotations
+
+from typing import TypeVar
+
+from percept_memory.converters import Unknown
+
+from .annotations import Annotation, Location, LogLine, Relation
+from .base import Id, Identifiable, Timestamp, stored_type
+from .hypotheses import Hypothesis
+from .raw import CameraInfo, Image, PointCloud, Transform, Vec3
+
+A = TypeVar("A", bound=Annotation)
+
+
+@stored_type("pm.scene.Cluster")
+class Cluster(Identifiable):
+    """One object hypothesis in one scene and the annotations of all annotators on it.
+    Annotations of types this version does not know are kept as `Unknown`."""
+
+    scene_id: Id | None = None
+    object_id: Id | None = None  # the physical object this observation is believed to be
+    hypotheses: list[Hypothesis | Unknown] = []
+    annotations: list[Annotation | Unknown] = []
+
+    def annotations_of(self, kind: type[A]) -> list[A]:
+        return [a for a in self.annotations if isinstance(a, kind)]
+
+    def hypothesis_of(self, kind: type[Hypothesis]) -> Hypothesis | None:
+        return next((h for h in self.hypotheses if isinstance(h, kind)), None)
+
+    def location(self) -> Location | None:
+        """The first location annotation that gives a position or region."""
+        return next(
+            (a for a in self.annotations_of(Location) if a.position or a.region), None
+        )
+
+    @property
+    def position(self) -> Vec3 | None:
+        location = self.location()
+        return location.position if location else None
+
+    @property
+    def region(self) -> str | None:
+        location = self.location()
+        return location.region if location else None
+
+
+@stored_type("pm.scene.Scene")
+class Scene(Identifiable):
+    """What one robot saw at one instant: camera pose and intrinsics, transforms, images,
+    clusters, the relations table, scene-level annotations and the annotators' log."""
+
+    timestamp: Timestamp
+    robot: str = ""
+    frame: str = "map"
+    camera_pose: Transform | None = None  # the camera in `frame`
+    camera: CameraInfo | None = None
+    transforms: list[Transform] = []
+    images: dict[str, Image] = {}
+    clouds: dict[str, PointCloud] = {}
+    clusters: list[Cluster] = []
+    relations: list[Relation] = []
+    annotations: list[Annotation | Unknown] = []
+    log: list[LogLine] = []

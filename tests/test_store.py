@@ -1,0 +1,282 @@
+"""MemoryStore and AsyncMemoryStore on the real embedded mongod."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+
+import bson
+import numpy as np
+import pytest
+from bson import ObjectId
+from gridfs import GridFSBucket
+from pymongo import AsyncMongoClient
+
+from percept_memory.converters import Unknown, decode, encode
+from percept_memory.ingest import synthetic
+from percept_memory.memory.async_store import AsyncMemoryStore
+from percept_memory.memory.errors import DuplicateId, NotFound, SceneExists, TooLarge
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.memory.types import (
+    Cluster,
+    FeatureVector,
+    Image,
+    Product,
+    Scene,
+    Shape,
+    Text,
+)
+
+from .conftest import ROBOSHERLOCK
+
+_clock = itertools.count(1_522_249_987_296_654_516, 33_000_000)
+
+
+def a_scene(kitchen_rgb, clusters: int = 6, seed: int = 0) -> Scene:
+    scene = synthetic.scene(np.random.default_rng(seed), next(_clock), clusters, kitchen_rgb)
+    scene.images["color"] = Image(data=kitchen_rgb, encoding="bgr8")
+    return scene
+
+
+def snapshot(store: MemoryStore) -> dict:
+    return {name: store.db[name].count_documents({})
+            for name in ("scenes", "clusters", "fs.files", "fs.chunks")}
+
+
+def test_a_stored_scene_reads_back_equal(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb)
+    ids = store.put_scene(scene)
+    assert ids.scene_id == scene.id and len(ids.cluster_ids) == 6
+    assert all(len(a) == 20 for a in ids.annotation_ids)
+    back = store.get_scene(ids.scene_id)
+    assert back == scene
+    assert back.clusters[0].scene_id == scene.id
+
+
+def test_scene_documents_are_small_and_queryable(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb)
+    store.put_scene(scene)
+    doc = store.scenes.find_one({"_id": scene.id})
+    assert doc["clusters"] == [c.id for c in scene.clusters]
+    assert doc["summary"]["clusters"] == 6
+    assert len(bson.encode(doc)) < 20_000  # the full image lives in GridFS
+    cluster_doc = store.clusters.find_one({"_id": scene.clusters[0].id})
+    search = cluster_doc["search"]
+    assert search["time"] == scene.timestamp and search["robot"] == "pr2"
+    assert search["region"] == scene.clusters[0].region
+    assert search["position"] == list(scene.clusters[0].position)
+    assert "pm.annotation.FeatureVector" in search["types"]
+    assert scene.clusters[0].annotations_of(Shape)[0].shape in search["labels"]
+
+
+def test_blobs_are_real_gridfs_files(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=1)
+    store.put_scene(scene)
+    (blob_id,) = store.scenes.find_one({"_id": scene.id})["_blobs"]
+    png = GridFSBucket(store.db).open_download_stream(blob_id).read()
+    assert png.startswith(b"\x89PNG")
+    assert store.get_blob(blob_id) == png
+
+
+def test_arrays_over_16_mb_go_to_gridfs(store):
+    big = np.random.default_rng(2).standard_normal(2_200_000)  # 17.6 MB
+    scene = Scene(timestamp=next(_clock), clusters=[
+        Cluster(annotations=[FeatureVector(name="dense", vector=big)])
+    ])
+    store.put_scene(scene)
+    assert store.get_scene(scene.id) == scene
+
+
+def test_a_write_that_fails_part_way_leaves_nothing(store, kitchen_rgb):
+    first = a_scene(kitchen_rgb, clusters=2, seed=1)
+    store.put_scene(first)
+    before = snapshot(store)
+    second = a_scene(kitchen_rgb, clusters=3, seed=2)
+    second.images["extra"] = Image(data=np.random.default_rng(9).integers(
+        0, 255, (480, 640, 3), dtype=np.uint8))  # a new blob, written before the clusters
+    second.clusters[2].id = first.clusters[0].id  # the third cluster insert fails
+    with pytest.raises(DuplicateId, match=str(first.clusters[0].id)):
+        store.put_scene(second)
+    assert snapshot(store) == before
+    assert store.scenes.find_one({"_id": second.id}) is None
+
+
+def test_a_document_too_large_leaves_nothing(store, kitchen_rgb):
+    before = snapshot(store)
+    huge = Scene(timestamp=next(_clock), clusters=[
+        Cluster(annotations=[Text(text="fine")]),
+        Cluster(annotations=[FeatureVector(name="x", vector=np.zeros(2_200_000))]),
+    ])
+    inline = MemoryStore(store.client, store.db.name, gridfs_threshold=64 * 1024 * 1024)
+    with pytest.raises(TooLarge, match="PMEM_GRIDFS_THRESHOLD"):
+        inline.put_scene(huge)
+    assert snapshot(store) == before
+
+
+def test_storing_the_same_scene_again_is_a_no_op(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=2)
+    first = store.put_scene(scene)
+    before = snapshot(store)
+    assert store.put_scene(scene) == first
+    assert snapshot(store) == before
+
+
+def test_another_scene_at_the_same_time_is_refused_with_the_existing_id(store):
+    scene = Scene(timestamp=next(_clock), robot="tiago")
+    store.put_scene(scene)
+    with pytest.raises(SceneExists) as refused:
+        store.put_scene(Scene(timestamp=scene.timestamp, robot="tiago"))
+    assert refused.value.existing_id == scene.id
+    store.put_scene(Scene(timestamp=scene.timestamp, robot="pr2"))  # another robot may
+
+
+def test_appending_an_annotation_is_idempotent_and_updates_search(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=1)
+    store.put_scene(scene)
+    cluster_id = scene.clusters[0].id
+    lookup = Product(source="WebAnnotator", name="Pringles Paprika", brand="Pringles")
+    annotation_id = store.add_annotation(cluster_id, lookup)
+    store.add_annotation(cluster_id, lookup)  # a retried job
+    stored = store.get_cluster(cluster_id)
+    assert [a.id for a in stored.annotations].count(annotation_id) == 1
+    assert stored.annotations[-1] == lookup
+    assert "pringles paprika" in store.clusters.find_one({"_id": cluster_id})["search"]["labels"]
+
+
+def test_appending_to_a_missing_cluster_says_so(store):
+    with pytest.raises(NotFound, match="no cluster"):
+        store.add_annotation(ObjectId(), Text(text="x"))
+
+
+def test_updating_an_annotation_replaces_it_in_place(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=1)
+    store.put_scene(scene)
+    cluster = scene.clusters[0]
+    shape = cluster.annotations_of(Shape)[0]
+    store.update_annotation(cluster.id, shape.model_copy(update={"shape": "torus"}))
+    stored = store.get_cluster(cluster.id)
+    assert stored.annotations_of(Shape)[0].shape == "torus"
+    assert stored.annotations_of(Shape)[0].id == shape.id
+    assert len(stored.annotations) == len(cluster.annotations)
+    with pytest.raises(NotFound, match="annotation"):
+        store.update_annotation(cluster.id, Shape(id=ObjectId(), shape="cone"))
+    assert store.get_cluster(cluster.id) == stored
+
+
+def test_updating_a_cluster(store, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=1)
+    store.put_scene(scene)
+    cluster = scene.clusters[0]
+    cluster.object_id = ObjectId()
+    cluster.annotations = cluster.annotations[:3]
+    store.update_cluster(cluster)
+    assert store.get_cluster(cluster.id) == cluster
+
+
+def test_robosherlock_annotations_we_do_not_know_survive_storage(store):
+    """Real `rs.*` documents of types we have no class for are kept byte for byte."""
+    path = ROBOSHERLOCK / "mongodump" / "PnP09ObjSymbolicGTFixed" / "persistent_objects.bson"
+    with open(path, "rb") as dump:
+        rs_object = next(bson.decode_file_iter(dump))
+    rs_annotations = [a for a in rs_object["annotations"] if a["_type"] in (
+        "rs.annotation.Geometry", "rs.annotation.SemanticColor", "rs.annotation.Features")]
+    cluster = Cluster(annotations=[decode(a) for a in rs_annotations])
+    assert all(isinstance(a, Unknown) for a in cluster.annotations)
+    scene = Scene(timestamp=rs_object["lastSeen"], robot="pr2", clusters=[cluster])
+    store.put_scene(scene)
+    back = store.get_cluster(cluster.id)
+    assert [bson.encode(encode(a)) for a in back.annotations] == [
+        bson.encode(a) for a in rs_annotations
+    ]
+
+
+def test_put_and_get_blob_by_content(store):
+    data = bytes(range(256)) * 2000
+    blob_id = store.put_blob(data)
+    assert store.put_blob(data) == blob_id
+    assert store.files.count_documents({"_id": blob_id}) == 1
+    assert store.get_blob(blob_id) == data
+    with pytest.raises(NotFound, match="blob"):
+        store.get_blob("sha256:00")
+
+
+def test_the_catalogue_describes_the_stored_types(store, kitchen_rgb):
+    store.put_scene(a_scene(kitchen_rgb, clusters=1))
+    catalogue = {entry["_id"]: entry for entry in store.catalogue()}
+    assert catalogue["pm.annotation.Classification"]["fields"]["class_name"] == {
+        "type": "str", "required": True}
+    assert catalogue["pm.annotation.Classification"]["aliases"] == [
+        "rs.annotation.Classification"]
+    assert catalogue["pm.annotation.Classification"]["kind"] == "Annotation"
+    assert catalogue["pm.raw.Image"]["known"] is True
+
+
+def test_counts_per_collection_and_type(store):
+    counts = store.counts()
+    clusters = store.clusters.count_documents({})
+    assert counts["collections"]["clusters"] == clusters
+    text_annotations = sum(
+        1 for doc in store.clusters.find({}, {"annotations._type": 1})
+        for a in doc["annotations"] if a["_type"] == "pm.annotation.Text"
+    )
+    assert counts["types"]["pm.annotation.Text"] == text_annotations > 0
+
+
+@pytest.mark.parametrize("query", [
+    {"scene_id": ObjectId()},
+    {"search.labels": "cereal"},
+    {"search.region": "counter_top_sink", "search.time": {"$gt": 0}},
+    {"search.types": "pm.annotation.Logo"},
+    {"object_id": ObjectId()},
+])
+def test_cluster_query_paths_use_an_index(store, query):
+    plan = store.clusters.find(query).explain()["queryPlanner"]["winningPlan"]
+    assert "IXSCAN" in str(plan), plan
+
+
+# --- the async store -------------------------------------------------------------------
+
+
+def run_async(mongo_uri: str, db_name: str, work):
+    async def main():
+        client = AsyncMongoClient(mongo_uri, **CLIENT_OPTIONS)
+        memory = AsyncMemoryStore(client, db_name, gridfs_threshold=128 * 1024)
+        await memory.prepare()
+        try:
+            return await work(memory)
+        finally:
+            await memory.close()
+
+    return asyncio.run(main())
+
+
+def test_async_store_round_trip_and_append(mongo_uri, db_name, kitchen_rgb):
+    scene = a_scene(kitchen_rgb, clusters=2, seed=5)
+
+    async def work(memory: AsyncMemoryStore):
+        ids = await memory.put_scene(scene)
+        assert await memory.put_scene(scene) == ids
+        back = await memory.get_scene(ids.scene_id)
+        await memory.add_annotation(ids.cluster_ids[0], Text(text="Hohes C"))
+        return back, await memory.get_cluster(ids.cluster_ids[0]), await memory.counts()
+
+    back, cluster, counts = run_async(mongo_uri, db_name, work)
+    assert back == scene
+    assert cluster.annotations[-1].text == "Hohes C"
+    assert counts["collections"]["scenes"] >= 1
+
+
+def test_concurrent_appends_to_one_cluster_all_land(mongo_uri, db_name, store):
+    """Write conflicts between transactions are retried: none of the appends is lost."""
+    scene = Scene(timestamp=next(_clock), clusters=[Cluster()])
+    store.put_scene(scene)
+    cluster_id = scene.clusters[0].id
+
+    async def work(memory: AsyncMemoryStore):
+        texts = [Text(text=f"lookup {i}") for i in range(12)]
+        await asyncio.gather(*(memory.add_annotation(cluster_id, t) for t in texts))
+        await asyncio.gather(*(memory.add_annotation(cluster_id, t) for t in texts))
+        return await memory.get_cluster(cluster_id)
+
+    cluster = run_async(mongo_uri, db_name, work)
+    assert sorted(a.text for a in cluster.annotations) == sorted(f"lookup {i}" for i in range(12))

@@ -134,16 +134,12 @@ def _describe(value: Any) -> str:
 # --- per-class plans ------------------------------------------------------------------------
 
 
-@dataclass(slots=True)
-class _Field:
-    key: str  # name in the document (the pydantic alias when there is one)
-    attr: str  # attribute name on the object
-    codec: FieldCodec
-    required: bool
-
-
 class _Plan:
-    """How to encode and decode one registered class, compiled from its annotations."""
+    """How to encode and decode one registered class, compiled from its annotations.
+
+    Each field is a tuple (document key, attribute, encoder, decoder, required); a None
+    encoder or decoder means the value is stored as it is.
+    """
 
     def __init__(self, cls: type[Typed]):
         name = name_of(cls)
@@ -153,26 +149,27 @@ class _Plan:
             )
         self.cls = cls
         self.name = name
-        self.fields = [
-            _Field(info.alias or attr, attr, _codec_for(info.annotation), info.is_required())
-            for attr, info in cls.model_fields.items()
-        ]
-        self.keys = frozenset(f.key for f in self.fields) | {TYPE_KEY}
+        self.fields = []
+        for attr, info in cls.model_fields.items():
+            codec = _codec_for(info.annotation)
+            key = info.alias or attr
+            self.fields.append((key, attr, codec.encode, codec.decode, info.is_required()))
+        self.keys = frozenset(field[0] for field in self.fields) | {TYPE_KEY}
 
     def encode(self, obj: Typed, ctx: EncodeContext) -> dict:
         doc: dict[str, Any] = {TYPE_KEY: self.name}
         values = obj.__dict__
-        for f in self.fields:
-            value = values[f.attr]
-            encoder = f.codec.encode
+        for key, attr, encoder, _, _ in self.fields:
+            value = values[attr]
             if encoder is None or value is None:
-                doc[f.key] = value
+                doc[key] = value
                 continue
             try:
-                doc[f.key] = encoder(value, ctx)
+                doc[key] = encoder(value, ctx)
             except (ConversionError, TypeError, ValueError) as error:
-                raise ConversionError(f"{self.name}.{f.key}: {error}") from error
-        unknown = obj.__pydantic_private__.get("_unknown_fields") if obj.__pydantic_private__ else None
+                raise ConversionError(f"{self.name}.{key}: {error}") from error
+        private = obj.__pydantic_private__
+        unknown = private.get("_unknown_fields") if private else None
         if unknown:
             for key, value in unknown.items():
                 doc.setdefault(key, value)
@@ -180,20 +177,19 @@ class _Plan:
 
     def decode(self, doc: Mapping, ctx: DecodeContext) -> Typed:
         values: dict[str, Any] = {}
-        for f in self.fields:
-            if f.key not in doc:
-                if f.required:
-                    raise ConversionError(f"{self.name}: required field {f.key!r} is missing")
+        for key, attr, _, decoder, required in self.fields:
+            if key not in doc:
+                if required:
+                    raise ConversionError(f"{self.name}: required field {key!r} is missing")
                 continue
-            value = doc[f.key]
-            decoder = f.codec.decode
+            value = doc[key]
             if decoder is None or value is None:
-                values[f.attr] = value
+                values[attr] = value
                 continue
             try:
-                values[f.attr] = decoder(value, ctx)
+                values[attr] = decoder(value, ctx)
             except (ConversionError, TypeError, ValueError, KeyError) as error:
-                raise ConversionError(f"{self.name}.{f.key}: {error}") from error
+                raise ConversionError(f"{self.name}.{key}: {error}") from error
         obj = self.cls.model_construct(**values)
         if len(doc) > len(values) + 1:
             unknown = {k: v for k, v in doc.items() if k not in self.keys}
@@ -315,11 +311,12 @@ def _union_codec(arms: tuple) -> FieldCodec:
     codecs = [_codec_for(arm) for arm in arms if arm is not type(None)]
     if len(codecs) == 1:  # Optional[X]: None is stored as None by the plans
         return codecs[0]
+    owns = lambda v: any(c.owns(v) for c in codecs)  # noqa: E731
+    accepts = lambda v: any(c.accepts(v) for c in codecs)  # noqa: E731
     if all(c.encode is None and c.decode is None for c in codecs):
-        return FieldCodec(
-            None, None, lambda v: any(c.owns(v) for c in codecs),
-            lambda v: any(c.accepts(v) for c in codecs),
-        )
+        return FieldCodec(None, None, owns, accepts)
+    if all(c.encode is _encode_object for c in codecs):  # stored types: dispatch on `_type`
+        return FieldCodec(_encode_object, _decode_tagged, owns, accepts)
 
     def encode_union(value, ctx):
         for c in codecs:
@@ -333,10 +330,7 @@ def _union_codec(arms: tuple) -> FieldCodec:
                 return value if c.decode is None else c.decode(value, ctx)
         raise ConversionError(f"stored {_describe(value)} matches no type of {arms}")
 
-    return FieldCodec(
-        encode_union, decode_union,
-        lambda v: any(c.owns(v) for c in codecs), lambda v: any(c.accepts(v) for c in codecs),
-    )
+    return FieldCodec(encode_union, decode_union, owns, accepts)
 
 
 def _sequence_codec(item: FieldCodec, origin: Any) -> FieldCodec:
@@ -368,6 +362,10 @@ def _tuple_codec(args: tuple) -> FieldCodec:
             _isinstance(list),
         )
     items = [_codec_for(arg) for arg in args]
+    if all(c.encode is None and c.decode is None for c in items):
+        return FieldCodec(
+            lambda v, ctx: list(v), lambda v, ctx: tuple(v), _isinstance(tuple), _isinstance(list)
+        )
 
     def encode_tuple(value, ctx):
         if len(value) != len(items):
@@ -388,13 +386,14 @@ def _tuple_codec(args: tuple) -> FieldCodec:
 _ESCAPES = {"%": "%25", ".": "%2E", "$": "%24", "\x00": "%00"}
 _UNESCAPES = {v: k for k, v in _ESCAPES.items()}
 _ESCAPED = re.compile("|".join(_UNESCAPES))
+_NEEDS_ESCAPE = re.compile("[%.$\x00]")
 
 
 def escape_key(key: str) -> str:
     if not isinstance(key, str):
         raise ConversionError(f"dictionary keys must be strings, got {_describe(key)}")
-    if any(c in key for c in _ESCAPES):
-        return "".join(_ESCAPES.get(c, c) for c in key)
+    if _NEEDS_ESCAPE.search(key):
+        return _NEEDS_ESCAPE.sub(lambda match: _ESCAPES[match.group(0)], key)
     return key
 
 

@@ -15,7 +15,14 @@ import numpy as np
 from .arrays import decode_array_fields, encode_array_fields
 from .blobs import ConversionError, DecodeContext, EncodeContext
 
-PNG_COMPRESSION = 1  # fast; PNG is lossless at every level
+# Chosen by measurement on 64 px crops of the real kitchen frame: the SUB filter with run-length
+# coding takes 134 us and 7.3 kB per crop, the default adaptive filter 269 us and 6.9 kB. PNG
+# is lossless whatever the settings.
+PNG_PARAMS = [
+    cv2.IMWRITE_PNG_COMPRESSION, 1,
+    cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+    cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
+]
 JPEG_QUALITY = 95
 
 
@@ -38,7 +45,7 @@ def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
     if _swaps_channels(encoding, array):
         array = array[..., [2, 1, 0, 3][: array.shape[2]]]
     if fmt == "png":
-        ok, buffer = cv2.imencode(".png", array, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
+        ok, buffer = cv2.imencode(".png", array, PNG_PARAMS)
     elif fmt == "jpeg":
         if array.dtype != np.uint8 or array.ndim == 3 and array.shape[2] == 4:
             raise ConversionError("JPEG holds 8-bit grey or colour images only; use png")

@@ -52,18 +52,14 @@ class Documents:
 
 def assign_ids(scene: Scene) -> SceneIds:
     """Give the scene, its clusters and their annotations ids where they have none."""
-    scene_id = scene.ensure_id()
+    ids = SceneIds(scene.ensure_id(), [], [])
     for cluster in scene.clusters:
-        cluster.ensure_id()
-        cluster.scene_id = scene_id
-        for annotation in cluster.annotations:
-            if isinstance(annotation, Annotation):
-                annotation.ensure_id()
-    return SceneIds(
-        scene_id,
-        [c.id for c in scene.clusters],
-        [[a.id for a in c.annotations if isinstance(a, Annotation)] for c in scene.clusters],
-    )
+        ids.cluster_ids.append(cluster.ensure_id())
+        cluster.scene_id = ids.scene_id
+        ids.annotation_ids.append(
+            [a.ensure_id() for a in cluster.annotations if isinstance(a, Annotation)]
+        )
+    return ids
 
 
 def scene_documents(scene: Scene, threshold: int) -> Documents:
@@ -72,7 +68,7 @@ def scene_documents(scene: Scene, threshold: int) -> Documents:
     out = Documents()
     for cluster in scene.clusters:
         out.clusters.append(_cluster_document(cluster, scene.timestamp, scene.robot, ctx))
-    doc = encode(scene, ctx)
+    doc = encode(scene.model_copy(update={"clusters": []}), ctx)  # clusters are stored apart
     doc["clusters"] = [c.id for c in scene.clusters]
     doc["time"] = datetime_from_timestamp(scene.timestamp)
     doc[SUMMARY_KEY] = {

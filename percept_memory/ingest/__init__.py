@@ -1,0 +1,1 @@
+"""Ways in: everything that brings percepts into the memory."""

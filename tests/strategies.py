@@ -11,7 +11,6 @@ import typing
 from enum import Enum
 from typing import Any
 
-import annotated_types
 import numpy as np
 from bson import ObjectId
 from hypothesis import strategies as st
@@ -51,7 +50,7 @@ POINT_CLOUDS = st.builds(
     frame=TEXT,
 )
 UNIT_QUATERNIONS = st.tuples(*[st.floats(-1, 1)] * 4).filter(
-    lambda q: 0.1 < sum(c * c for c in q)
+    lambda q: sum(c * c for c in q) > 0.1
 ).map(lambda q: tuple(c / sum(x * x for x in q) ** 0.5 for c in q))
 UNKNOWN = st.builds(
     lambda name, fields: Unknown(type_name=name, fields=fields),

@@ -252,7 +252,8 @@ def _build_codec(annotation: Any) -> FieldCodec:
     if origin in (typing.Union, types.UnionType):
         return _union_codec(args)
     if origin in (list, Sequence, set, frozenset):
-        return _sequence_codec(_codec_for(args[0]) if args else _codec_for(Any), origin)
+        item = _codec_for(args[0]) if args else _codec_for(Any)
+        return _sequence_codec(item, list if origin is Sequence else origin)
     if origin is tuple:
         return _tuple_codec(args)
     if origin in (dict, Mapping):
@@ -333,34 +334,30 @@ def _union_codec(arms: tuple) -> FieldCodec:
     return FieldCodec(encode_union, decode_union, owns, accepts)
 
 
-def _sequence_codec(item: FieldCodec, origin: Any) -> FieldCodec:
-    make = set if origin is set else frozenset if origin is frozenset else list
-    python_types = (set, frozenset) if make is not list else (list, tuple)
+_PYTHON_SEQUENCES = {
+    list: (list, tuple), tuple: (tuple,), set: (set, frozenset), frozenset: (set, frozenset)
+}
+
+
+def _sequence_codec(item: FieldCodec, make: type) -> FieldCodec:
+    """list[X], tuple[X, ...], set[X], frozenset[X]: a BSON array, `make` on the way back."""
     enc, dec = item.encode, item.decode
+    owns, accepts = _isinstance(_PYTHON_SEQUENCES[make]), _isinstance(list)
     if enc is None and dec is None and make is list:
-        return FieldCodec(None, None, _isinstance(python_types), _isinstance(list))
+        return FieldCodec(None, None, owns, accepts)
     return FieldCodec(
         (lambda v, ctx: list(v)) if enc is None
         else lambda v, ctx: [x if x is None else enc(x, ctx) for x in v],
         (lambda v, ctx: make(v)) if dec is None
         else lambda v, ctx: make(x if x is None else dec(x, ctx) for x in v),
-        _isinstance(python_types),
-        _isinstance(list),
+        owns,
+        accepts,
     )
 
 
 def _tuple_codec(args: tuple) -> FieldCodec:
     if len(args) == 2 and args[1] is Ellipsis:
-        item = _codec_for(args[0])
-        enc, dec = item.encode, item.decode
-        return FieldCodec(
-            (lambda v, ctx: list(v)) if enc is None
-            else lambda v, ctx: [x if x is None else enc(x, ctx) for x in v],
-            (lambda v, ctx: tuple(v)) if dec is None
-            else lambda v, ctx: tuple(x if x is None else dec(x, ctx) for x in v),
-            _isinstance(tuple),
-            _isinstance(list),
-        )
+        return _sequence_codec(_codec_for(args[0]), tuple)
     items = [_codec_for(arg) for arg in args]
     if all(c.encode is None and c.decode is None for c in items):
         return FieldCodec(
@@ -421,7 +418,7 @@ def _dict_codec(value_codec: FieldCodec) -> FieldCodec:
 
 
 def _encode_any(value: Any, ctx: EncodeContext) -> Any:
-    if isinstance(value, _AS_STORED) or isinstance(value, datetime):
+    if isinstance(value, (*_AS_STORED, datetime)):
         return value
     if isinstance(value, enum.Enum):
         return value.value

@@ -79,7 +79,9 @@ class ImageCodec:
         array, fmt = image.data, image.format
         lossless_raw = fmt == "raw" or (fmt == "png" and not png_compatible(array))
         stored_as = "raw" if lossless_raw else fmt
-        doc = {"_type": self.name, "encoding": image.encoding, "format": fmt, "stored_as": stored_as}
+        doc = {
+            "_type": self.name, "encoding": image.encoding, "format": fmt, "stored_as": stored_as
+        }
         if stored_as == "raw":
             doc.update(encode_array_fields(array, ctx))
         else:

@@ -34,13 +34,17 @@ def register_type(name: str, *, aliases: tuple[str, ...] = ()) -> Callable[[T], 
     def decorate(cls: T) -> T:
         for key in (name, *aliases):
             owner = _class_by_name.get(key)
-            if owner is not None and owner is not cls:
-                raise ValueError(f"type name {key!r} is already taken by {owner.__qualname__}")
-            _class_by_name[key] = cls
+            if owner is not None and _where(owner) != _where(cls):
+                raise ValueError(f"type name {key!r} is already taken by {_where(owner)}")
+            _class_by_name[key] = cls  # the same class defined again (a reload) replaces it
         _name_by_class[cls] = name
         return cls
 
     return decorate
+
+
+def _where(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 def class_for(name: str) -> type | None:

@@ -8,12 +8,25 @@ from __future__ import annotations
 
 from bson import ObjectId
 from pymongo import AsyncMongoClient
-from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+from pymongo.errors import (
+    BulkWriteError,
+    DocumentTooLarge,
+    DuplicateKeyError,
+    OperationFailure,
+    PyMongoError,
+)
 
 from percept_memory.converters import content_id
 
 from . import documents as docs
-from .errors import NotFound, StoreError, TooLarge, require_replica_set, too_large
+from .errors import (
+    NotFound,
+    StoreError,
+    TooLarge,
+    require_replica_set,
+    too_large,
+    unreachable,
+)
 from .schema import COUNTED_COLLECTIONS, INDEXES, catalogue_entry
 from .settings import Settings
 from .store import CLIENT_OPTIONS, ClusterChange, StoreBase
@@ -29,9 +42,14 @@ class AsyncMemoryStore(StoreBase):
         from .mongod import resolve_uri
 
         settings = settings or Settings()
-        client = AsyncMongoClient(resolve_uri(settings), **CLIENT_OPTIONS)
-        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
-        await store.prepare()
+        uri = resolve_uri(settings)
+        store = cls(AsyncMongoClient(uri, **CLIENT_OPTIONS), settings.db,
+                    gridfs_threshold=settings.gridfs_threshold)
+        try:
+            await store.prepare()
+        except PyMongoError as error:
+            await store.close()
+            raise unreachable(uri, error) from error
         return store
 
     async def prepare(self) -> None:

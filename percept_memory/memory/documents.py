@@ -11,13 +11,13 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+
 from bson import ObjectId
 
 from percept_memory.converters import (
     DecodeContext,
     EncodeContext,
     Unknown,
-    content_id,
     decode,
     encode,
 )
@@ -142,7 +142,9 @@ def decode_cluster(doc: Mapping, blobs: Mapping[str, bytes]) -> Cluster:
     return decode(_stored_fields(doc), DecodeContext(blobs))
 
 
-def decode_scene(doc: Mapping, cluster_docs: Iterable[Mapping], blobs: Mapping[str, bytes]) -> Scene:
+def decode_scene(
+    doc: Mapping, cluster_docs: Iterable[Mapping], blobs: Mapping[str, bytes]
+) -> Scene:
     """The scene back from its document and its clusters' documents (any order)."""
     by_id = {c["_id"]: c for c in cluster_docs}
     fields = _stored_fields(doc)

@@ -73,3 +73,21 @@ def too_large(error: Exception) -> bool:
     if isinstance(error, DocumentTooLarge):
         return True
     return isinstance(error, OperationFailure) and error.code == BSON_OBJECT_TOO_LARGE
+
+
+def redacted(uri: str) -> str:
+    """A connection string fit to print: the password is replaced by ***."""
+    scheme, sep, rest = uri.partition("://")
+    credentials, at, hosts = rest.rpartition("@")
+    if not at or ":" not in credentials:
+        return uri
+    return f"{scheme}{sep}{credentials.split(':', 1)[0]}:***@{hosts}"
+
+
+def unreachable(uri: str, error: Exception) -> StoreError:
+    """The database at `uri` could not be used at all."""
+    reason = str(error).split(" (configured timeouts")[0]  # not pymongo's topology dump
+    return StoreError(
+        f"cannot use MongoDB at {redacted(uri)}: {reason}. Check MONGODB_URI, or unset it to "
+        "use the embedded mongod"
+    )

@@ -76,7 +76,9 @@ def catalogue_entry(name: str) -> dict:
         "aliases": aliases_of(cls),
         "doc": (cls.__doc__ or "").strip().split("\n\n")[0].replace("\n", " "),
         "fields": {
-            info.alias or field: {"type": type_string(info.annotation), "required": info.is_required()}
+            info.alias or field: {
+                "type": type_string(info.annotation), "required": info.is_required()
+            }
             for field, info in cls.model_fields.items()
         },
     }

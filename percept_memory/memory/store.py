@@ -13,7 +13,13 @@ from collections.abc import Callable
 
 from bson import ObjectId
 from pymongo import MongoClient
-from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+from pymongo.errors import (
+    BulkWriteError,
+    DocumentTooLarge,
+    DuplicateKeyError,
+    OperationFailure,
+    PyMongoError,
+)
 
 from percept_memory.converters import content_id
 
@@ -25,8 +31,9 @@ from .errors import (
     StoreError,
     TooLarge,
     duplicate_key,
-    too_large,
     require_replica_set,
+    too_large,
+    unreachable,
 )
 from .schema import (
     CLUSTERS,
@@ -88,9 +95,14 @@ class MemoryStore(StoreBase):
         from .mongod import resolve_uri
 
         settings = settings or Settings()
-        client = MongoClient(resolve_uri(settings), **CLIENT_OPTIONS)
-        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
-        store.prepare()
+        uri = resolve_uri(settings)
+        store = cls(MongoClient(uri, **CLIENT_OPTIONS), settings.db,
+                    gridfs_threshold=settings.gridfs_threshold)
+        try:
+            store.prepare()
+        except PyMongoError as error:
+            store.close()
+            raise unreachable(uri, error) from error
         return store
 
     def prepare(self) -> None:

@@ -7,12 +7,19 @@ from typing import Annotated, Any
 
 import numpy as np
 from bson import ObjectId
-from pydantic import ConfigDict, Field, PlainSerializer, PlainValidator, WithJsonSchema
-from pydantic import model_validator
+from pydantic import (
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    WithJsonSchema,
+    model_validator,
+)
 
 from percept_memory.converters import Typed, class_for, name_of, register_type
 
-stored_type = register_type  # `@stored_type("pm.annotation.Shape", aliases=("rs.annotation.Shape",))`
+stored_type = register_type
+"""Class decorator naming a stored type: `@stored_type("pm.annotation.Shape", aliases=(...))`."""
 
 
 def _to_object_id(value: Any) -> ObjectId:

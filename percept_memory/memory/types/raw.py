@@ -108,7 +108,9 @@ class Image(Model):
     @classmethod
     def _image_shaped(cls, data: np.ndarray) -> np.ndarray:
         if data.ndim not in (2, 3):
-            raise ValueError(f"an image is 2-D or 3-D (height, width[, channels]), got {data.ndim}-D")
+            raise ValueError(
+                f"an image is 2-D or 3-D (height, width[, channels]), got {data.ndim}-D"
+            )
         return data
 
     @property
@@ -139,7 +141,9 @@ class PointCloud(Model):
             if not {"x", "y", "z"} <= set(names):
                 raise ValueError(f"structured points need fields x, y, z; got {names}")
         elif points.ndim != 2 or points.shape[1] != 3:
-            raise ValueError(f"points must be (N, 3) or structured with x, y, z; got {points.shape}")
+            raise ValueError(
+                f"points must be (N, 3) or structured with x, y, z; got {points.shape}"
+            )
         return points
 
     def xyz(self) -> np.ndarray:

@@ -1,0 +1,67 @@
+"""Shared fixtures: a real MongoDB for the session and a fresh database per test module."""
+
+from __future__ import annotations
+
+import os
+import secrets
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pymongo import MongoClient
+
+from percept_memory.memory.mongod import EmbeddedMongod
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+
+
+@pytest.fixture(scope="session")
+def mongo_uri(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """MONGODB_URI if set (CI can point at any server), else a real embedded mongod."""
+    if uri := os.environ.get("MONGODB_URI"):
+        yield uri
+        return
+    with socket.socket() as probe:  # a free loopback port, chosen by the kernel
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    mongod = EmbeddedMongod(tmp_path_factory.mktemp("mongod"), port, cache_gb=0.25, oplog_mb=64)
+    try:
+        yield mongod.start()
+    finally:
+        mongod.stop()
+
+
+@pytest.fixture(scope="module")
+def db_name(request: pytest.FixtureRequest, mongo_uri: str) -> Iterator[str]:
+    """A database name unique to the test module, dropped when the module is done."""
+    module = request.module.__name__.rsplit(".", 1)[-1].removeprefix("test_")
+    name = f"test_{module[:40]}_{secrets.token_hex(4)}"
+    yield name
+    with MongoClient(mongo_uri) as client:
+        client.drop_database(name)
+
+
+# --- the memory store and the real RoboSherlock data ------------------------------------------
+
+SHARED = Path(os.environ.get("PMEM_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+ROBOSHERLOCK = SHARED / "data" / "robosherlock"
+
+
+@pytest.fixture(scope="module")
+def store(mongo_uri: str, db_name: str) -> Iterator[MemoryStore]:
+    """A MemoryStore on the module's fresh database."""
+    client = MongoClient(mongo_uri, **CLIENT_OPTIONS)
+    memory = MemoryStore(client, db_name, gridfs_threshold=Settings().gridfs_threshold)
+    memory.prepare()
+    yield memory
+    memory.close()
+
+
+@pytest.fixture(scope="session")
+def kitchen_rgb() -> np.ndarray:
+    """The real 640x480 kitchen counter frame of RoboSherlock's samples (BGR, uint8)."""
+    (path,) = (ROBOSHERLOCK / "samples" / "kitchen").glob("rgb_*.png")
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)

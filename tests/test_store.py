@@ -15,7 +15,7 @@ from pymongo import AsyncMongoClient
 from percept_memory.converters import Unknown, decode, encode
 from percept_memory.ingest import synthetic
 from percept_memory.memory.async_store import AsyncMemoryStore
-from percept_memory.memory.errors import DuplicateId, NotFound, SceneExists, TooLarge
+from percept_memory.memory.errors import DuplicateId, NotFound, TooLarge
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import (
     Cluster,
@@ -116,18 +116,66 @@ def test_a_document_too_large_leaves_nothing(store, kitchen_rgb):
 def test_storing_the_same_scene_again_is_a_no_op(store, kitchen_rgb):
     scene = a_scene(kitchen_rgb, clusters=2)
     first = store.put_scene(scene)
+    assert first.created
     before = snapshot(store)
-    assert store.put_scene(scene) == first
+    again = store.put_scene(scene)
+    assert (again.scene_id, again.cluster_ids, again.annotation_ids) == (
+        first.scene_id, first.cluster_ids, first.annotation_ids)
+    assert not again.created
     assert snapshot(store) == before
 
 
-def test_another_scene_at_the_same_time_is_refused_with_the_existing_id(store):
-    scene = Scene(timestamp=next(_clock), robot="tiago")
+def test_a_scene_is_identified_by_robot_and_time(store):
+    """Another object for the same robot and timestamp is the same scene: its stored ids
+    come back and nothing is written; another robot at that time is another scene."""
+    scene = Scene(timestamp=next(_clock), robot="tiago", clusters=[Cluster(annotations=[
+        Text(text="milk")])])
+    stored = store.put_scene(scene)
+    before = snapshot(store)
+    repeated = store.put_scene(Scene(timestamp=scene.timestamp, robot="tiago"))
+    assert not repeated.created
+    assert repeated.scene_id == scene.id
+    assert repeated.annotation_ids == stored.annotation_ids
+    assert snapshot(store) == before
+    assert store.put_scene(Scene(timestamp=scene.timestamp, robot="pr2")).created
+
+
+def test_a_batch_is_one_write_and_skips_what_is_stored(store, kitchen_rgb):
+    stored_before = a_scene(kitchen_rgb, clusters=1, seed=11)
+    store.put_scene(stored_before)
+    batch = [a_scene(kitchen_rgb, clusters=2, seed=12), stored_before,
+             a_scene(kitchen_rgb, clusters=3, seed=13)]
+    twin = batch[0].model_copy(deep=True)  # the same scene twice in one batch
+    twin.id = None
+    results = store.put_scenes([*batch, twin])
+    assert [r.created for r in results] == [True, False, True, False]
+    assert results[3].scene_id == results[0].scene_id == batch[0].id
+    assert store.scenes.count_documents({"_id": {"$in": [s.id for s in batch]}}) == 3
+    for scene in batch:
+        assert store.get_scene(scene.id) == scene
+
+
+def test_a_batch_that_fails_leaves_nothing(store, kitchen_rgb):
+    taken = a_scene(kitchen_rgb, clusters=1, seed=21)
+    store.put_scene(taken)
+    before = snapshot(store)
+    batch = [a_scene(kitchen_rgb, clusters=2, seed=22), a_scene(kitchen_rgb, clusters=2, seed=23)]
+    batch[1].clusters[1].id = taken.clusters[0].id
+    with pytest.raises(DuplicateId):
+        store.put_scenes(batch)
+    assert snapshot(store) == before
+
+
+def test_clusters_sharing_a_big_blob_each_read_back(store):
+    shared = np.random.default_rng(8).random(40_000)  # 320 kB: a blob, stored once
+    scene = Scene(timestamp=next(_clock), clusters=[
+        Cluster(annotations=[FeatureVector(name="same", vector=shared)]) for _ in range(2)
+    ])
+    before = store.files.count_documents({})
     store.put_scene(scene)
-    with pytest.raises(SceneExists) as refused:
-        store.put_scene(Scene(timestamp=scene.timestamp, robot="tiago"))
-    assert refused.value.existing_id == scene.id
-    store.put_scene(Scene(timestamp=scene.timestamp, robot="pr2"))  # another robot may
+    assert store.files.count_documents({}) == before + 1
+    for cluster in scene.clusters:
+        assert store.get_cluster(cluster.id) == cluster
 
 
 def test_appending_an_annotation_is_idempotent_and_updates_search(store, kitchen_rgb):
@@ -255,7 +303,9 @@ def test_async_store_round_trip_and_append(mongo_uri, db_name, kitchen_rgb):
 
     async def work(memory: AsyncMemoryStore):
         ids = await memory.put_scene(scene)
-        assert await memory.put_scene(scene) == ids
+        again = await memory.put_scene(scene)
+        assert (again.scene_id, again.cluster_ids, again.created) == (
+            ids.scene_id, ids.cluster_ids, False)
         back = await memory.get_scene(ids.scene_id)
         await memory.add_annotation(ids.cluster_ids[0], Text(text="Hohes C"))
         return back, await memory.get_cluster(ids.cluster_ids[0]), await memory.counts()

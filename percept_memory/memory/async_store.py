@@ -6,6 +6,8 @@ enrichment workers and the web app.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from bson import ObjectId
 from pymongo import AsyncMongoClient
 from pymongo.errors import (
@@ -20,6 +22,7 @@ from percept_memory.converters import content_id
 
 from . import documents as docs
 from .errors import (
+    DuplicateId,
     NotFound,
     StoreError,
     TooLarge,
@@ -67,9 +70,20 @@ class AsyncMemoryStore(StoreBase):
         await self.close()
 
     async def put_scene(self, scene: Scene) -> docs.SceneIds:
-        """See MemoryStore.put_scene."""
-        ids = docs.assign_ids(scene)
-        written = docs.scene_documents(scene, self.gridfs_threshold)
+        return (await self.put_scenes([scene]))[0]
+
+    async def put_scenes(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+        """See MemoryStore.put_scenes: new scenes in one transaction, stored ones not again."""
+        try:
+            return await self._put_new(scenes)
+        except DuplicateId:  # another writer may have stored some of them since we looked
+            return await self._put_new(scenes)
+
+    async def _put_new(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+        fresh, results = docs.partition(scenes, await self._stored(scenes))
+        if not fresh:
+            return results
+        written = docs.scene_documents(fresh, self.gridfs_threshold)
 
         async def work(session):
             await self._insert(written, session)
@@ -77,17 +91,22 @@ class AsyncMemoryStore(StoreBase):
         try:
             await self._transaction(work)
         except (DuplicateKeyError, BulkWriteError) as error:
-            if await self.scenes.find_one({"_id": ids.scene_id}, {"_id": 1}) is None:
-                existing = await self.scenes.find_one(
-                    self._existing_scene_query(scene), {"_id": 1}
-                )
-                raise self._refusal(scene, existing, error) from None
+            raise self._duplicate(error) from None
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
         await self._catalogue(written.type_names)
-        return ids
+        return results
+
+    async def _stored(self, scenes: Sequence[Scene]) -> dict:
+        if not scenes:
+            return {}
+        query = docs.stored_query(map(docs.scene_key, scenes))
+        found = await self.scenes.find(query, docs.STORED_IDS_PROJECTION).to_list()
+        cluster_ids = [c for doc in found for c in doc["clusters"]]
+        clusters = self.clusters.find({"_id": {"$in": cluster_ids}}, {"annotations._id": 1})
+        return docs.stored_by_key(found, await clusters.to_list())
 
     async def get_scene(self, scene_id: ObjectId) -> Scene:
         doc = await self.scenes.find_one({"_id": scene_id})
@@ -163,7 +182,7 @@ class AsyncMemoryStore(StoreBase):
 
     async def _insert(self, written: docs.Documents, session) -> None:
         await self._put_blobs(written.blobs, session)
-        await self.scenes.insert_one(written.scene, session=session)
+        await self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             await self.clusters.insert_many(written.clusters, session=session)
 

@@ -9,18 +9,12 @@ queries never join. Both stores, sync and async, use these functions and only ad
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 
 from bson import ObjectId
 
-from percept_memory.converters import (
-    DecodeContext,
-    EncodeContext,
-    Unknown,
-    decode,
-    encode,
-)
+from percept_memory.converters import DecodeContext, EncodeContext, Unknown, decode, encode
 
 from .errors import NotFound
 from .types import Annotation, Cluster, ImageROI, Scene, datetime_from_timestamp
@@ -33,21 +27,34 @@ DERIVED_KEYS = (SEARCH_KEY, BLOBS_KEY, SUMMARY_KEY, "time")
 
 @dataclass
 class SceneIds:
-    """The ids a stored scene was given, for the caller to keep."""
+    """The ids of a stored scene, for the caller to keep. `created` is False when the scene
+    (same robot, same timestamp) was stored before and these are the ids it was given then."""
 
     scene_id: ObjectId
     cluster_ids: list[ObjectId]
     annotation_ids: list[list[ObjectId]]
+    created: bool = True
 
 
 @dataclass
 class Documents:
     """Everything one write stores: documents, the blobs they refer to, the type names used."""
 
-    scene: dict | None = None
+    scenes: list[dict] = field(default_factory=list)
     clusters: list[dict] = field(default_factory=list)
     blobs: dict[str, bytes] = field(default_factory=dict)
     type_names: set[str] = field(default_factory=set)
+
+    def encode(self, value: Scene | Cluster, threshold: int) -> dict:
+        """The document of one object. Each document lists the blobs it refers to itself,
+        even when another document of the write holds the same (content-addressed) bytes."""
+        ctx = EncodeContext(threshold=threshold)
+        doc = encode(value, ctx)
+        if ctx.blobs:
+            doc[BLOBS_KEY] = sorted(ctx.blobs)
+            self.blobs.update(ctx.blobs)
+        self.type_names |= ctx.type_names
+        return doc
 
 
 def assign_ids(scene: Scene) -> SceneIds:
@@ -62,50 +69,91 @@ def assign_ids(scene: Scene) -> SceneIds:
     return ids
 
 
-def scene_documents(scene: Scene, threshold: int) -> Documents:
-    """The documents of a scene whose ids are assigned."""
-    ctx = EncodeContext(threshold=threshold)
+def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
+    """The documents of scenes whose ids are assigned, for one write."""
     out = Documents()
-    for cluster in scene.clusters:
-        out.clusters.append(_cluster_document(cluster, scene.timestamp, scene.robot, ctx))
-    doc = encode(scene.model_copy(update={"clusters": []}), ctx)  # clusters are stored apart
-    doc["clusters"] = [c.id for c in scene.clusters]
-    doc["time"] = datetime_from_timestamp(scene.timestamp)
-    doc[SUMMARY_KEY] = {
-        "clusters": len(scene.clusters),
-        "labels": sorted({label for c in out.clusters for label in c[SEARCH_KEY]["labels"]}),
-        "regions": sorted({c[SEARCH_KEY]["region"] for c in out.clusters} - {None}),
-    }
-    _own_blobs(doc, set(ctx.blobs) - _ids_in(out.clusters))
-    out.scene = doc
-    out.blobs, out.type_names = ctx.blobs, ctx.type_names
+    for scene in scenes:
+        clusters = [
+            _cluster_document(c, scene.timestamp, scene.robot, threshold, out)
+            for c in scene.clusters
+        ]
+        doc = out.encode(scene.model_copy(update={"clusters": []}), threshold)  # stored apart
+        doc["clusters"] = [c.id for c in scene.clusters]
+        doc["time"] = datetime_from_timestamp(scene.timestamp)
+        doc[SUMMARY_KEY] = {
+            "clusters": len(clusters),
+            "labels": sorted({label for c in clusters for label in c[SEARCH_KEY]["labels"]}),
+            "regions": sorted({c[SEARCH_KEY]["region"] for c in clusters} - {None}),
+        }
+        out.scenes.append(doc)
+        out.clusters.extend(clusters)
     return out
 
 
 def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Documents:
     """The new document of a stored cluster, keeping its scene's time and robot."""
-    ctx = EncodeContext(threshold=threshold)
+    out = Documents()
     search = stored[SEARCH_KEY]
-    doc = _cluster_document(cluster, search["time"], search["robot"], ctx)
-    return Documents(clusters=[doc], blobs=ctx.blobs, type_names=ctx.type_names)
+    out.clusters.append(_cluster_document(cluster, search["time"], search["robot"], threshold, out))
+    return out
 
 
-def _cluster_document(cluster: Cluster, timestamp: int, robot: str, ctx: EncodeContext) -> dict:
-    before = set(ctx.blobs)
-    doc = encode(cluster, ctx)
+def _cluster_document(
+    cluster: Cluster, timestamp: int, robot: str, threshold: int, out: Documents
+) -> dict:
+    doc = out.encode(cluster, threshold)
     doc[SEARCH_KEY] = search_fields(cluster, timestamp, robot)
-    _own_blobs(doc, set(ctx.blobs) - before)
     return doc
 
 
-def _own_blobs(doc: dict, blob_ids: Iterable[str]) -> None:
-    blob_ids = sorted(blob_ids)
-    if blob_ids:
-        doc[BLOBS_KEY] = blob_ids
+def stored_ids(scene_doc: Mapping, cluster_docs: Iterable[Mapping]) -> SceneIds:
+    """The ids of a scene stored before, from its document and its clusters' `annotations._id`."""
+    annotations = {c["_id"]: [a["_id"] for a in c.get("annotations", []) if "_id" in a]
+                   for c in cluster_docs}
+    cluster_ids = list(scene_doc["clusters"])
+    return SceneIds(
+        scene_doc["_id"], cluster_ids, [annotations.get(c, []) for c in cluster_ids], False
+    )
 
 
-def _ids_in(docs: Iterable[dict]) -> set[str]:
-    return {blob for doc in docs for blob in doc.get(BLOBS_KEY, ())}
+def stored_by_key(scene_docs: Iterable[Mapping], cluster_docs: Iterable[Mapping]) -> dict:
+    """(robot, timestamp) -> SceneIds of stored scenes."""
+    cluster_docs = list(cluster_docs)
+    return {scene_key(doc): stored_ids(doc, cluster_docs) for doc in scene_docs}
+
+
+def partition(scenes: Iterable[Scene], stored: dict) -> tuple[list[Scene], list[SceneIds]]:
+    """The scenes still to write, and the ids of every scene in order: stored ones keep the
+    ids they have, new ones get ids assigned (a scene twice in one batch is written once)."""
+    fresh: list[Scene] = []
+    results: list[SceneIds] = []
+    first: dict[tuple[str, int], SceneIds] = {}
+    for scene in scenes:
+        key = scene_key(scene)
+        if key in stored:
+            results.append(stored[key])
+        elif key in first:
+            results.append(replace(first[key], created=False))
+        else:
+            first[key] = assign_ids(scene)
+            fresh.append(scene)
+            results.append(first[key])
+    return fresh, results
+
+
+STORED_IDS_PROJECTION = {"robot": 1, "timestamp": 1, "clusters": 1}
+
+
+def stored_query(keys: Iterable[tuple[str, int]]) -> dict:
+    """The filter finding the stored scenes with these (robot, timestamp) keys."""
+    return {"$or": [{"robot": robot, "timestamp": time} for robot, time in sorted(set(keys))]}
+
+
+def scene_key(scene: Scene | Mapping) -> tuple[str, int]:
+    """What identifies a scene: the robot that took it and when."""
+    if isinstance(scene, Mapping):
+        return scene["robot"], scene["timestamp"]
+    return scene.robot, scene.timestamp
 
 
 def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from bson import ObjectId
 from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
 
 
@@ -17,16 +16,6 @@ class NotFound(StoreError, KeyError):
 
     def __str__(self) -> str:
         return self.args[0]
-
-
-class SceneExists(StoreError):
-    """A different scene with the same robot and timestamp is stored already."""
-
-    def __init__(self, robot: str, timestamp: int, existing_id: ObjectId):
-        super().__init__(
-            f"robot {robot!r} already has a scene at timestamp {timestamp} (id {existing_id})"
-        )
-        self.existing_id = existing_id
 
 
 def require_replica_set(hello: dict) -> None:

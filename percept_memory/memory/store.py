@@ -9,7 +9,7 @@ the document layout in documents.py and do only the I/O here.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from bson import ObjectId
 from pymongo import MongoClient
@@ -27,7 +27,6 @@ from . import documents as docs
 from .errors import (
     DuplicateId,
     NotFound,
-    SceneExists,
     StoreError,
     TooLarge,
     duplicate_key,
@@ -72,17 +71,10 @@ class StoreBase:
         return new
 
     @staticmethod
-    def _existing_scene_query(scene: Scene) -> dict:
-        return {"robot": scene.robot, "timestamp": scene.timestamp}
-
-    @staticmethod
-    def _refusal(scene: Scene, existing: dict | None, error: Exception) -> StoreError:
-        """Why a scene write hit a duplicate key, when it was not a retry of itself."""
-        if existing is not None:
-            return SceneExists(scene.robot, scene.timestamp, existing["_id"])
+    def _duplicate(error: Exception) -> DuplicateId:
         return DuplicateId(
-            f"scene {scene.id} was not stored: {duplicate_key(error)} is already used by "
-            "another stored document; give new objects no id (ids are assigned on store)"
+            f"not stored: {duplicate_key(error)} is already used by another stored document; "
+            "give new objects no id (ids are assigned on store)"
         )
 
 
@@ -123,23 +115,45 @@ class MemoryStore(StoreBase):
     # --- scenes -------------------------------------------------------------------------
 
     def put_scene(self, scene: Scene) -> docs.SceneIds:
-        """Store a new scene with its clusters, all or nothing; ids are assigned in place.
-        Storing the same scene object again is a no-op (a retry); another scene of the same
-        robot at the same timestamp raises SceneExists."""
-        ids = docs.assign_ids(scene)
-        written = docs.scene_documents(scene, self.gridfs_threshold)
+        """Store one scene; see put_scenes."""
+        return self.put_scenes([scene])[0]
+
+    def put_scenes(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+        """Store scenes with their clusters and blobs, the new ones in one transaction (all of
+        them or none); ids are assigned in place. A scene is identified by its robot and
+        timestamp: one stored before is not written again and its stored ids come back with
+        `created=False`, so a retried or repeated ingest never duplicates anything."""
+        try:
+            return self._put_new(scenes)
+        except DuplicateId:  # another writer may have stored some of them since we looked
+            return self._put_new(scenes)
+
+    def _put_new(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+        fresh, results = docs.partition(scenes, self._stored(scenes))
+        if not fresh:
+            return results
+        written = docs.scene_documents(fresh, self.gridfs_threshold)
         try:
             self._transaction(lambda session: self._insert(written, session))
         except (DuplicateKeyError, BulkWriteError) as error:
-            if self.scenes.find_one({"_id": ids.scene_id}, {"_id": 1}) is None:
-                existing = self.scenes.find_one(self._existing_scene_query(scene), {"_id": 1})
-                raise self._refusal(scene, existing, error) from None
+            raise self._duplicate(error) from None
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
         self._catalogue(written.type_names)
-        return ids
+        return results
+
+    def _stored(self, scenes: Sequence[Scene]) -> dict:
+        """(robot, timestamp) -> SceneIds of those of `scenes` that are stored."""
+        if not scenes:
+            return {}
+        found = list(self.scenes.find(
+            docs.stored_query(map(docs.scene_key, scenes)), docs.STORED_IDS_PROJECTION
+        ))
+        cluster_ids = [c for doc in found for c in doc["clusters"]]
+        clusters = self.clusters.find({"_id": {"$in": cluster_ids}}, {"annotations._id": 1})
+        return docs.stored_by_key(found, clusters)
 
     def get_scene(self, scene_id: ObjectId) -> Scene:
         doc = self.scenes.find_one({"_id": scene_id})
@@ -221,7 +235,7 @@ class MemoryStore(StoreBase):
 
     def _insert(self, written: docs.Documents, session) -> None:
         self._put_blobs(written.blobs, session)
-        self.scenes.insert_one(written.scene, session=session)
+        self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             self.clusters.insert_many(written.clusters, session=session)
 

@@ -1,0 +1,108 @@
+"""The one way in: validate -> store -> after-store stages -> ids.
+
+HTTP, the CLI and every importer hand scenes to `IngestService`. A batch is validated whole
+before anything is written, so bad input never leaves half a batch behind; the valid batch is
+stored in one transaction. Scenes stored before (same robot, same timestamp) are not written
+again and keep their ids. After storing, the new scenes go through the after-store stages in
+order: identity consolidation, then enqueueing enrichment jobs, as those parts of the memory
+register theirs. Ingest never waits on a web lookup.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from itertools import islice
+from typing import Any
+
+from pydantic import ValidationError
+
+from percept_memory.memory.documents import SceneIds
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Scene
+
+AfterStore = Callable[[Sequence[Scene]], None]
+"""A stage run on the scenes a batch newly stored (e.g. identity consolidation)."""
+
+DEFAULT_BATCH = 32
+
+
+class IngestError(ValueError):
+    """Input that is not a valid scene. `problems` holds one entry per problem: which item of
+    the batch, the field path (e.g. `clusters.0.annotations.2.confidence`) and what is wrong."""
+
+    def __init__(self, problems: list[dict]):
+        self.problems = problems
+        lines = [f"{p['item']}: {p['path'] or '(scene)'}: {p['message']}" for p in problems[:10]]
+        more = f"\n... and {len(problems) - 10} more" if len(problems) > 10 else ""
+        super().__init__(f"{len(problems)} problem(s) in the input:\n" + "\n".join(lines) + more)
+
+
+def problems_of(error: ValidationError, item: Any) -> list[dict]:
+    """pydantic's errors as IngestError problems (no input values echoed back)."""
+    return [
+        {"item": item, "path": ".".join(str(part) for part in e["loc"]), "message": e["msg"],
+         "type": e["type"]}
+        for e in error.errors(include_url=False, include_input=False)
+    ]
+
+
+def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 0) -> Scene:
+    """A Scene from a Scene or from interchange data (a dict as parsed from JSON). `context`
+    carries what reading it needs, e.g. the scene-log folder that relative paths refer to."""
+    if isinstance(data, Scene):
+        return data
+    if not isinstance(data, Mapping):
+        raise IngestError([{"item": item, "path": "", "message":
+                            f"a scene is a JSON object, not {type(data).__name__}",
+                            "type": "model_type"}])
+    try:
+        return Scene.model_validate(dict(data), context=dict(context or {}))
+    except ValidationError as error:
+        raise IngestError(problems_of(error, item)) from None
+
+
+class IngestService:
+    """Brings scenes into a MemoryStore."""
+
+    def __init__(
+        self,
+        store: MemoryStore,
+        *,
+        after_store: Sequence[AfterStore] = (),
+        batch_size: int = DEFAULT_BATCH,
+    ):
+        self.store = store
+        self.after_store = list(after_store)
+        self.batch_size = batch_size
+
+    def ingest(self, data: Scene | Mapping, context: Mapping | None = None) -> SceneIds:
+        """Validate and store one scene."""
+        return self.ingest_batch([data], context)[0]
+
+    def ingest_batch(
+        self, items: Sequence[Scene | Mapping], context: Mapping | None = None
+    ) -> list[SceneIds]:
+        """Validate a whole batch, then store it in one transaction; nothing is written when
+        any item is invalid (the IngestError names every problem)."""
+        scenes, problems = [], []
+        for index, data in enumerate(items):
+            try:
+                scenes.append(validate(data, context, item=index))
+            except IngestError as error:
+                problems.extend(error.problems)
+        if problems:
+            raise IngestError(problems)
+        results = self.store.put_scenes(scenes)
+        created = [scene for scene, ids in zip(scenes, results, strict=True) if ids.created]
+        if created:
+            for stage in self.after_store:
+                stage(created)
+        return results
+
+    def ingest_stream(
+        self, items: Iterable[Scene | Mapping], context: Mapping | None = None
+    ) -> Iterator[SceneIds]:
+        """Store a long stream batch by batch (importers, demo), yielding ids as they land."""
+        iterator = iter(items)
+        while batch := list(islice(iterator, self.batch_size)):
+            yield from self.ingest_batch(batch, context)

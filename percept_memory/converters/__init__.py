@@ -14,7 +14,15 @@ from .codec import (
     register_codec,
 )
 from .images import ImageCodec
-from .registry import Typed, aliases_of, class_for, name_of, register_type, registered_types
+from .registry import (
+    Typed,
+    aliases_of,
+    class_for,
+    name_of,
+    register_type,
+    registered_types,
+    reserve_namespace,
+)
 
 register_codec(np.ndarray, NDArrayCodec())
 
@@ -38,4 +46,5 @@ __all__ = [
     "register_codec",
     "register_type",
     "registered_types",
+    "reserve_namespace",
 ]

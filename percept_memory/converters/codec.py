@@ -22,10 +22,10 @@ from datetime import UTC, datetime
 from typing import Any, Protocol
 
 from bson import ObjectId
-from pydantic import BaseModel, model_validator
+from pydantic import BaseModel, model_serializer, model_validator
 
 from .blobs import ConversionError, DecodeContext, EncodeContext
-from .registry import Typed, class_for, name_of
+from .registry import Typed, class_for, close_names, is_reserved, name_of
 
 TYPE_KEY = "_type"
 
@@ -67,11 +67,30 @@ class Unknown(Typed):
     fields: dict[str, Any]
     problem: str | None = None  # why a known type could not be read, if that is the case
 
+    @model_validator(mode="before")
+    @classmethod
+    def _from_document(cls, data: Any) -> Any:
+        """A plain document with an unregistered `_type` (from JSON) is kept as it is."""
+        if not isinstance(data, Mapping) or TYPE_KEY not in data or "fields" in data:
+            return data
+        name = data[TYPE_KEY]
+        if not isinstance(name, str) or class_for(name) is not None:
+            raise ValueError(f"{TYPE_KEY} {name!r} is a registered type; its fields do not fit")
+        if is_reserved(name):
+            hint = close_names(name)
+            raise ValueError(f"unknown type {name!r}" + (f"; did you mean {hint[0]!r}?" if hint
+                                                          else ""))
+        return {"type_name": name, "fields": dict(data)}
+
     @model_validator(mode="after")
     def _fields_carry_the_type(self) -> Unknown:
         if self.fields.get(TYPE_KEY) != self.type_name:
             self.fields = {TYPE_KEY: self.type_name, **self.fields}
         return self
+
+    @model_serializer
+    def _as_stored(self) -> dict:
+        return self.fields
 
 
 # --- encoding and decoding of tagged documents --------------------------------------------

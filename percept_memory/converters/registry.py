@@ -7,6 +7,7 @@ changes, so documents written years ago still find their class. Aliases let fore
 
 from __future__ import annotations
 
+import difflib
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -15,6 +16,7 @@ from pydantic import BaseModel, PrivateAttr
 T = TypeVar("T", bound=type)
 
 _class_by_name: dict[str, type] = {}
+_reserved_prefixes: set[str] = set()
 _name_by_class: dict[type, str] = {}
 
 
@@ -66,3 +68,18 @@ def aliases_of(cls: type) -> list[str]:
     """The foreign names that resolve to `cls`."""
     own = _name_by_class.get(cls)
     return sorted(key for key, owner in _class_by_name.items() if owner is cls and key != own)
+
+
+def reserve_namespace(prefix: str) -> None:
+    """Names under `prefix` belong to this program: an unregistered one is a mistake (a typo,
+    a removed type) rather than another program's type to keep as it is."""
+    _reserved_prefixes.add(prefix)
+
+
+def is_reserved(name: str) -> bool:
+    return any(name.startswith(prefix) for prefix in _reserved_prefixes)
+
+
+def close_names(name: str) -> list[str]:
+    """Registered names that look like `name`, for "did you mean" messages."""
+    return difflib.get_close_matches(name, list(_class_by_name), n=3)

@@ -24,6 +24,7 @@ AfterStore = Callable[[Sequence[Scene]], None]
 """A stage run on the scenes a batch newly stored (e.g. identity consolidation)."""
 
 DEFAULT_BATCH = 32
+UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a field's path
 
 
 class IngestError(ValueError):
@@ -40,8 +41,8 @@ class IngestError(ValueError):
 def problems_of(error: ValidationError, item: Any) -> list[dict]:
     """pydantic's errors as IngestError problems (no input values echoed back)."""
     return [
-        {"item": item, "path": ".".join(str(part) for part in e["loc"]), "message": e["msg"],
-         "type": e["type"]}
+        {"item": item, "path": ".".join(str(p) for p in e["loc"] if p not in UNION_TAGS),
+         "message": e["msg"], "type": e["type"]}
         for e in error.errors(include_url=False, include_input=False)
     ]
 

@@ -9,16 +9,33 @@ import numpy as np
 from bson import ObjectId
 from pydantic import (
     ConfigDict,
+    Discriminator,
     Field,
+    GetJsonSchemaHandler,
+    SerializeAsAny,
+    Tag,
+    ValidationInfo,
     PlainSerializer,
     PlainValidator,
+    SerializationInfo,
+    SerializerFunctionWrapHandler,
     WithJsonSchema,
+    model_serializer,
     model_validator,
 )
 
-from percept_memory.converters import Typed, class_for, name_of, register_type
+from percept_memory.converters import (
+    Typed,
+    Unknown,
+    class_for,
+    name_of,
+    register_type,
+    registered_types,
+    reserve_namespace,
+)
 
 stored_type = register_type
+reserve_namespace("pm.")  # our own type names: an unknown one is a typo, not foreign data
 """Class decorator naming a stored type: `@stored_type("pm.annotation.Shape", aliases=(...))`."""
 
 
@@ -95,16 +112,40 @@ class Model(Typed):
 
     @model_validator(mode="wrap")
     @classmethod
-    def _dispatch_on_type(cls, data: Any, handler):
-        if isinstance(data, dict) and "_type" in data:
+    def _dispatch_on_type(cls, data: Any, handler, info: ValidationInfo):
+        is_base = name_of(cls) is None and bool(_registered_kinds(cls))  # e.g. Annotation
+        if isinstance(data, dict) and ("_type" in data or is_base):
             data = dict(data)
-            name = data.pop("_type")
+            name = data.pop("_type", None)
             target = class_for(name) if isinstance(name, str) else None
             if target is None or not issubclass(target, cls):
-                raise ValueError(f"_type {name!r} is not a registered kind of {cls.__name__}")
+                kinds = sorted(name_of(t) for t in _registered_kinds(cls))
+                raise ValueError(f"_type {name!r} is not a kind of {cls.__name__}: one of {kinds}")
             if target is not cls:
-                return target.model_validate(data)
+                return target.model_validate(data, context=info.context)
         return handler(data)
+
+    @classmethod
+    def __get_pydantic_json_schema__(cls, core_schema, handler: GetJsonSchemaHandler) -> dict:
+        """Registered types name their `_type`; a base such as Annotation is one of its kinds."""
+        if name_of(cls) is not None:
+            return _with_type(handler(core_schema), name_of(cls), handler, required=False)
+        return {"oneOf": [
+            _with_type(handler(kind.__pydantic_core_schema__), name_of(kind), handler, True)
+            for kind in _registered_kinds(cls)
+        ]}
+
+    @model_serializer(mode="wrap")
+    def _tagged(self, handler: SerializerFunctionWrapHandler, info: SerializationInfo) -> Any:
+        """Dumps carry `_type` first, so polymorphic lists read back as the right classes."""
+        fields = handler(self)
+        if info.mode_is_json():
+            fields = self._json_fields(fields)
+        return {"_type": self.type_name, **fields}
+
+    def _json_fields(self, fields: dict) -> dict:
+        """Hook for types whose JSON form differs from their fields (images travel as PNG)."""
+        return fields
 
     @property
     def type_name(self) -> str:
@@ -119,6 +160,34 @@ class Model(Typed):
         ) and _same(self._unknown_fields or {}, other._unknown_fields or {})
 
     __hash__ = None  # type: ignore[assignment]
+
+
+def _with_type(schema: dict, name: str, handler: GetJsonSchemaHandler, required: bool) -> dict:
+    target = handler.resolve_ref_schema(schema)
+    target["properties"] = {"_type": {"const": name}, **target.get("properties", {})}
+    if required:
+        target["required"] = ["_type", *target.get("required", [])]
+    return schema
+
+
+def _registered_kinds(base: type) -> list[type]:
+    return [kind for kind in registered_types().values() if issubclass(kind, base)]
+
+
+def polymorphic(base: type) -> Any:
+    """The type of a field holding any registered kind of `base`, chosen by its `_type`, or an
+    Unknown when no class is registered under that `_type` (kept as it is, never dropped)."""
+
+    def arm(value: Any) -> str:
+        if isinstance(value, Unknown):
+            return "unknown"
+        name = value.get("_type") if isinstance(value, dict) else None
+        return "unknown" if isinstance(name, str) and class_for(name) is None else "known"
+
+    return Annotated[
+        Annotated[SerializeAsAny[base], Tag("known")] | Annotated[Unknown, Tag("unknown")],
+        Discriminator(arm),
+    ]
 
 
 class Identifiable(Model):

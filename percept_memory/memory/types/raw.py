@@ -6,25 +6,40 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import Field, PlainSerializer, PlainValidator, WithJsonSchema, field_validator
+from pydantic import (
+    Field,
+    PlainSerializer,
+    PlainValidator,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 
 from percept_memory.converters import ImageCodec, register_codec
 
 from .base import Model, Timestamp, stored_type
-
-
-def _to_array(value: Any) -> np.ndarray:
-    array = value if isinstance(value, np.ndarray) else np.asarray(value)
-    if array.dtype.hasobject:
-        raise ValueError("arrays must hold numbers, not Python objects")
-    return array
+from .json_forms import array_from_json, array_to_json, image_from_json, image_to_json
 
 
 NDArray = Annotated[
     np.ndarray,
-    PlainValidator(_to_array),
-    PlainSerializer(lambda array: array.tolist(), when_used="json"),
-    WithJsonSchema({"type": "array", "description": "numbers, nested by dimension"}),
+    PlainValidator(array_from_json),
+    PlainSerializer(array_to_json, when_used="json"),
+    WithJsonSchema({
+        "description": "numbers: nested lists, {dtype, shape, base64} (exact), or {path} of a "
+                       ".npy file in the scene-log folder",
+        "anyOf": [
+            {"type": "array"},
+            {"type": "object", "required": ["dtype", "shape", "base64"], "properties": {
+                "dtype": {"type": "string", "examples": ["<f4", "|u1"]},
+                "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}},
+                "base64": {"type": "string", "contentEncoding": "base64"}},
+             "additionalProperties": False},
+            {"type": "object", "required": ["path"], "properties": {"path": {"type": "string"}},
+             "additionalProperties": False},
+        ],
+    }),
 ]
 """A numpy array of numbers, stored exactly (dtype, shape, bytes)."""
 
@@ -98,11 +113,23 @@ class CameraInfo(Model):
 
 @stored_type("pm.raw.Image")
 class Image(Model):
-    """An image array with its ROS-style encoding; stored as lossless PNG unless asked."""
+    """An image array with its ROS-style encoding; stored as lossless PNG unless asked.
+
+    In JSON the pixels come as `png` or `jpeg` (base64), as a `path` to an image file in the
+    scene-log folder, or as `data` (an array); e.g. {"png": "iVBORw0...", "encoding": "bgr8"}.
+    """
 
     data: NDArray
     encoding: str = "bgr8"
     format: Literal["png", "jpeg", "raw"] = "png"
+
+    @model_validator(mode="before")
+    @classmethod
+    def _decode_files(cls, data: Any, info: ValidationInfo) -> Any:
+        return image_from_json(data, info)
+
+    def _json_fields(self, fields: dict) -> dict:
+        return image_to_json(fields, self.data)
 
     @field_validator("data")
     @classmethod

@@ -8,7 +8,7 @@ from typing import TypeVar
 from percept_memory.converters import Unknown
 
 from .annotations import Annotation, Location, LogLine, Relation
-from .base import Id, Identifiable, Timestamp, stored_type
+from .base import Id, Identifiable, Timestamp, polymorphic, stored_type
 from .hypotheses import Hypothesis
 from .raw import CameraInfo, Image, PointCloud, Transform, Vec3
 
@@ -22,8 +22,8 @@ class Cluster(Identifiable):
 
     scene_id: Id | None = None
     object_id: Id | None = None  # the physical object this observation is believed to be
-    hypotheses: list[Hypothesis | Unknown] = []
-    annotations: list[Annotation | Unknown] = []
+    hypotheses: list[polymorphic(Hypothesis)] = []
+    annotations: list[polymorphic(Annotation)] = []
 
     def annotations_of(self, kind: type[A]) -> list[A]:
         return [a for a in self.annotations if isinstance(a, kind)]
@@ -63,5 +63,5 @@ class Scene(Identifiable):
     clouds: dict[str, PointCloud] = {}
     clusters: list[Cluster] = []
     relations: list[Relation] = []
-    annotations: list[Annotation | Unknown] = []
+    annotations: list[polymorphic(Annotation)] = []
     log: list[LogLine] = []

@@ -10,9 +10,11 @@ register theirs. Ingest never waits on a web lookup.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from itertools import islice
-from typing import Any
+from typing import Any, NamedTuple
 
 from pydantic import ValidationError
 
@@ -81,18 +83,39 @@ class IngestService:
         return self.ingest_batch([data], context)[0]
 
     def ingest_batch(
-        self, items: Sequence[Scene | Mapping], context: Mapping | None = None
+        self,
+        items: Sequence[Scene | Mapping],
+        context: Mapping | None = None,
+        labels: Sequence[str] | None = None,
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
-        any item is invalid (the IngestError names every problem)."""
+        any item is invalid (the IngestError names every problem, by label or index)."""
+        return self._store(self._validated(items, context, labels))
+
+    def ingest_stream(
+        self, items: Iterable[tuple[str, Scene | Mapping]], context: Mapping | None = None
+    ) -> Iterator[Ingested]:
+        """Store a long stream of (label, scene) batch by batch (importers, the demo),
+        yielding each scene with its ids as its batch lands. Labels name the item in errors."""
+        iterator = iter(items)
+        while batch := list(islice(iterator, self.batch_size)):
+            scenes = self._validated([data for _, data in batch], context,
+                                     [label for label, _ in batch])
+            yield from map(Ingested, scenes, self._store(scenes))
+
+    @staticmethod
+    def _validated(items, context, labels) -> list[Scene]:
         scenes, problems = [], []
         for index, data in enumerate(items):
             try:
-                scenes.append(validate(data, context, item=index))
+                scenes.append(validate(data, context, item=labels[index] if labels else index))
             except IngestError as error:
                 problems.extend(error.problems)
         if problems:
             raise IngestError(problems)
+        return scenes
+
+    def _store(self, scenes: list[Scene]) -> list[SceneIds]:
         results = self.store.put_scenes(scenes)
         created = [scene for scene, ids in zip(scenes, results, strict=True) if ids.created]
         if created:
@@ -100,10 +123,27 @@ class IngestService:
                 stage(created)
         return results
 
-    def ingest_stream(
-        self, items: Iterable[Scene | Mapping], context: Mapping | None = None
-    ) -> Iterator[SceneIds]:
-        """Store a long stream batch by batch (importers, demo), yielding ids as they land."""
-        iterator = iter(items)
-        while batch := list(islice(iterator, self.batch_size)):
-            yield from self.ingest_batch(batch, context)
+
+class Ingested(NamedTuple):
+    scene: Scene
+    ids: SceneIds
+
+
+@dataclass
+class ImportSummary:
+    """What an import brought in: scenes new and already stored, clusters, kinds of evidence."""
+
+    scenes_new: int = 0
+    scenes_existing: int = 0
+    clusters: int = 0
+    types: Counter = field(default_factory=Counter)
+
+    def add(self, ingested: Ingested) -> None:
+        if not ingested.ids.created:
+            self.scenes_existing += 1
+            return
+        self.scenes_new += 1
+        self.clusters += len(ingested.scene.clusters)
+        for cluster in ingested.scene.clusters:
+            self.types.update(item.type_name for item in (*cluster.hypotheses,
+                                                            *cluster.annotations))

@@ -48,6 +48,10 @@ class Settings(BaseSettings):
     token: str | None = Field(
         default=None, description="PMEM_TOKEN: write token for the HTTP API"
     )
+    max_request_mb: float = Field(
+        default=64, gt=0,
+        description="PMEM_MAX_REQUEST_MB: largest HTTP request body accepted (413 above)",
+    )
 
 
 def settings_help() -> str:

@@ -1,0 +1,81 @@
+"""Scene-log folders: scenes in the interchange format v1, with their images as files.
+
+A folder holds `*.json` files (one scene, or a list of scenes) and `*.jsonl` files (one scene
+per line), read in name order. Arrays and images are inline (base64) or relative paths to files
+in the folder (`.npy` arrays, PNG/JPEG images), which may not point outside it. The JSON Schema
+of a scene is `pmem schema` (or GET /api/schema/scene); docs/interchange.md has an example.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from percept_memory.memory.types import Scene
+
+from .service import IngestError
+
+IMAGES = "images"
+
+
+def _problem(where: str, message: str) -> IngestError:
+    return IngestError([{"item": where, "path": "", "message": message, "type": "json_invalid"}])
+
+
+def read_scene_log(folder: Path) -> Iterator[tuple[str, Any]]:
+    """(where, scene data) for every scene in the folder; `where` is `file` or `file:line`."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise _problem(str(folder), "is not a scene-log folder (no such directory)")
+    files = sorted(p for p in folder.iterdir() if p.suffix in (".json", ".jsonl"))
+    if not files:
+        raise _problem(str(folder), "holds no .json or .jsonl scene files")
+    for path in files:
+        if path.suffix == ".jsonl":
+            with path.open(encoding="utf-8") as lines:
+                for number, line in enumerate(lines, start=1):
+                    if line.strip():
+                        yield f"{path.name}:{number}", _parse(line, f"{path.name}:{number}")
+        else:
+            data = _parse(path.read_text(encoding="utf-8"), path.name)
+            for index, scene in enumerate(data if isinstance(data, list) else [data]):
+                yield (f"{path.name}[{index}]" if isinstance(data, list) else path.name), scene
+
+
+def _parse(text: str, where: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as error:
+        raise _problem(where, f"is not valid JSON: {error}") from None
+
+
+def write_scene_log(scenes: Iterable[Scene], folder: Path, name: str = "scenes.jsonl") -> int:
+    """Write scenes as a scene-log folder: one JSON line per scene, images as PNG/JPEG files
+    under images/. Returns the number of scenes written."""
+    folder = Path(folder)
+    (folder / IMAGES).mkdir(parents=True, exist_ok=True)
+    count = 0
+    with (folder / name).open("w", encoding="utf-8") as out:
+        for count, scene in enumerate(scenes, start=1):
+            data = scene.model_dump(mode="json", by_alias=True)
+            out.write(json.dumps(_images_to_files(data, folder, f"{count:06d}")) + "\n")
+    return count
+
+
+def _images_to_files(value: Any, folder: Path, stem: str, counter: list[int] | None = None):
+    """Every inline PNG/JPEG image in `value` written to a file and replaced by its path."""
+    counter = counter if counter is not None else [0]
+    if isinstance(value, list):
+        return [_images_to_files(item, folder, stem, counter) for item in value]
+    if not isinstance(value, dict):
+        return value
+    for kind, suffix in (("png", ".png"), ("jpeg", ".jpg")):
+        if kind in value:
+            counter[0] += 1
+            relative = f"{IMAGES}/{stem}_{counter[0]:03d}{suffix}"
+            (folder / relative).write_bytes(base64.b64decode(value[kind]))
+            return {**{k: v for k, v in value.items() if k != kind}, "path": relative}
+    return {key: _images_to_files(item, folder, stem, counter) for key, item in value.items()}

@@ -1,0 +1,119 @@
+"""The FastAPI app. Every error is one JSON shape: {"error": {"status", "message", "problems"}}.
+
+Writes need `Authorization: Bearer <PMEM_TOKEN>` when a token is configured. Request bodies are
+read in chunks and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException
+
+from percept_memory.ingest.service import IngestError, IngestService
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Scene
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, message: str, problems: list | None = None):
+        super().__init__(message)
+        self.status, self.message, self.problems = status, message, problems or []
+
+
+def error_response(status: int, message: str, problems: list | None = None) -> JSONResponse:
+    return JSONResponse(
+        {"error": {"status": status, "message": message, "problems": problems or []}},
+        status_code=status,
+    )
+
+
+def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
+    """The app on a store; one IngestService serves every write."""
+    app = FastAPI(
+        title="percept-memory",
+        description="Long-term spatio-temporal memory for robot perception.",
+        version="0.1.0",
+    )
+    service = IngestService(store)
+    max_bytes = int(settings.max_request_mb * 2**20)
+    scene_schema = Scene.model_json_schema()
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, error: ApiError) -> JSONResponse:
+        return error_response(error.status, error.message, error.problems)
+
+    @app.exception_handler(HTTPException)
+    async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
+        return error_response(error.status_code, str(error.detail))
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_error(request: Request, error: RequestValidationError) -> JSONResponse:
+        problems = [{"path": ".".join(map(str, e["loc"])), "message": e["msg"]}
+                    for e in error.errors()]
+        return error_response(422, "the request is not valid", problems)
+
+    @app.get("/api/schema/scene", summary="JSON Schema of a scene (interchange format v1)")
+    def scene_json_schema() -> dict[str, Any]:
+        return scene_schema
+
+    @app.post("/api/scenes", status_code=201, summary="Store one scene or a batch of scenes")
+    async def post_scenes(request: Request) -> dict[str, Any]:
+        """Body: a scene, or a list of scenes, as GET /api/schema/scene describes. A batch is
+        validated whole and stored in one transaction. Scenes stored before (same robot and
+        timestamp) keep their ids and come back with `created: false`."""
+        _authorise(request, settings.token)
+        data = _parse_json(await _read_body(request, max_bytes))
+        items = data if isinstance(data, list) else [data]
+        if not items:
+            raise ApiError(422, "the batch is empty")
+        try:
+            results = await run_in_threadpool(service.ingest_batch, items)
+        except IngestError as error:
+            raise ApiError(422, "the scenes are not valid", error.problems) from None
+        return {"scenes": [
+            {"scene_id": str(r.scene_id), "cluster_ids": [str(c) for c in r.cluster_ids],
+             "annotation_ids": [[str(a) for a in ids] for ids in r.annotation_ids],
+             "created": r.created}
+            for r in results
+        ]}
+
+    return app
+
+
+def _authorise(request: Request, token: str | None) -> None:
+    if token is None:
+        return
+    given = request.headers.get("authorization", "")
+    if not given:
+        raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>")
+    scheme, _, value = given.partition(" ")
+    if scheme.lower() != "bearer" or not secrets.compare_digest(value.encode(), token.encode()):
+        raise ApiError(403, "the write token is not valid")
+
+
+async def _read_body(request: Request, max_bytes: int) -> bytes:
+    declared = request.headers.get("content-length")
+    if declared is not None and declared.isdigit() and int(declared) > max_bytes:
+        raise ApiError(413, f"the request body is over the limit of {max_bytes} bytes")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > max_bytes:
+            raise ApiError(413, f"the request body is over the limit of {max_bytes} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _parse_json(body: bytes) -> Any:
+    try:
+        return json.loads(body)
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise ApiError(422, f"the body is not valid JSON: {error}") from None

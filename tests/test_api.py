@@ -1,0 +1,106 @@
+"""The HTTP API: POST /api/scenes and the scene schema, on the real store."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from bson import ObjectId
+from fastapi.testclient import TestClient
+
+from percept_memory.memory.settings import Settings
+from percept_memory.webui.app import create_app
+
+from .test_ingest import valid_scene
+from .test_store import snapshot
+
+STAMP = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def client(store):
+    return TestClient(create_app(store, Settings(max_request_mb=1)))
+
+
+def test_schema_describes_every_annotation_kind(client):
+    schema = client.get("/api/schema/scene").json()
+    kinds = {k["properties"]["_type"]["const"] for k in schema["$defs"]["Annotation"]["oneOf"]}
+    assert {"pm.annotation.Classification", "pm.annotation.WebLookup"} <= kinds
+    assert "/api/scenes" in client.get("/openapi.json").json()["paths"]
+
+
+def test_post_one_scene_then_again(client, store):
+    scene = valid_scene(seed=1, timestamp=STAMP)
+    first = client.post("/api/scenes", json=scene)
+    assert first.status_code == 201, first.text
+    (stored,) = first.json()["scenes"]
+    assert stored["created"] and len(stored["cluster_ids"]) == 2
+    assert store.get_scene(ObjectId(stored["scene_id"])).timestamp == STAMP
+    again = client.post("/api/scenes", json=scene).json()["scenes"][0]
+    assert again["scene_id"] == stored["scene_id"] and not again["created"]
+
+
+def test_post_a_batch(client):
+    batch = [valid_scene(seed=i, timestamp=STAMP + 10 + i) for i in range(3)]
+    response = client.post("/api/scenes", json=batch)
+    assert response.status_code == 201
+    assert [s["created"] for s in response.json()["scenes"]] == [True, True, True]
+
+
+def test_invalid_scenes_get_422_with_every_problem_and_nothing_is_written(client, store):
+    bad = valid_scene(seed=4, timestamp=STAMP + 20)
+    bad["clusters"][0]["annotations"][1]["confidence"] = 7
+    del bad["timestamp"]
+    before = snapshot(store)
+    response = client.post("/api/scenes", json=[valid_scene(seed=5, timestamp=STAMP + 21), bad])
+    assert response.status_code == 422
+    error = response.json()["error"]
+    assert {p["path"] for p in error["problems"]} == {
+        "timestamp", "clusters.0.annotations.1.confidence"}
+    assert all(p["item"] == 1 for p in error["problems"])
+    assert snapshot(store) == before
+
+
+@pytest.mark.parametrize("body, message", [
+    (b'{"timestamp": 1,', "not valid JSON"),
+    (b"[]", "empty"),
+    (b"\xff\xfe", "not valid JSON"),
+])
+def test_bodies_that_are_not_scenes(client, body, message):
+    response = client.post("/api/scenes", content=body,
+                           headers={"content-type": "application/json"})
+    assert response.status_code == 422
+    assert message in response.json()["error"]["message"]
+
+
+def test_operators_in_values_are_plain_data_and_refused(client, store):
+    """A MongoDB operator smuggled in a value is just a wrong type, never a query."""
+    scene = valid_scene(seed=6, timestamp=STAMP + 30)
+    scene["robot"] = {"$gt": ""}
+    before = snapshot(store)
+    response = client.post("/api/scenes", json=scene)
+    assert response.status_code == 422
+    assert response.json()["error"]["problems"][0]["path"] == "robot"
+    assert snapshot(store) == before
+
+
+def test_bodies_over_the_limit_get_413(client, store):
+    big = valid_scene(seed=7, timestamp=STAMP + 40)
+    big["clusters"][0]["annotations"][0]["source"] = "x" * (2 * 2**20)
+    before = snapshot(store)
+    response = client.post("/api/scenes", content=json.dumps(big),
+                           headers={"content-type": "application/json"})
+    assert response.status_code == 413
+    assert "limit" in response.json()["error"]["message"]
+    assert snapshot(store) == before
+
+
+def test_a_configured_token_guards_writes(store):
+    guarded = TestClient(create_app(store, Settings(token="s3cret")))
+    scene = valid_scene(seed=8, timestamp=STAMP + 50)
+    assert guarded.post("/api/scenes", json=scene).status_code == 401
+    wrong = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer nope"})
+    assert wrong.status_code == 403
+    right = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer s3cret"})
+    assert right.status_code == 201
+    assert guarded.get("/api/schema/scene").status_code == 200  # reading needs no token

@@ -1,0 +1,206 @@
+"""The ingest service, the interchange format v1 and scene-log folders, on the real mongod."""
+
+from __future__ import annotations
+
+import base64
+import json
+
+import numpy as np
+import pytest
+
+from percept_memory.ingest import synthetic
+from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
+from percept_memory.ingest.service import IngestError, IngestService
+from percept_memory.memory.documents import assign_ids
+from percept_memory.memory.types import FeatureVector, Image, Scene
+
+from .test_store import snapshot
+
+STAMP = 1_600_000_000_000_000_000
+
+
+def valid_scene(seed: int = 0, timestamp: int = STAMP, image=None) -> dict:
+    """A realistic scene in its JSON interchange form."""
+    scene = synthetic.scene(np.random.default_rng(seed), timestamp, 2, image)
+    return json.loads(scene.model_dump_json(by_alias=True))
+
+
+def at(data: dict, path: str):
+    """The container and key a dotted path names, e.g. clusters.0.annotations.1.confidence."""
+    *parents, last = path.split(".")
+    for part in parents:
+        data = data[int(part)] if isinstance(data, list) else data[part]
+    return data, int(last) if isinstance(data, list) else last
+
+
+def b64(data: bytes) -> str:
+    return base64.b64encode(data).decode()
+
+
+A = "clusters.0.annotations"
+LOCATION, CLASSIFICATION, VFH = f"{A}.0", f"{A}.1", f"{A}.7"
+ROI = "clusters.0.hypotheses.0"
+# (name, path, new value or DELETE, the path the error must name, words the message must hold)
+DELETE = object()
+MALFORMED = [
+    ("missing timestamp", "timestamp", DELETE, "timestamp", "required"),
+    ("timestamp as text", "timestamp", "yesterday", "timestamp", "integer"),
+    ("negative timestamp", "timestamp", -5, "timestamp", "greater than or equal"),
+    ("timestamp past int64", "timestamp", 2**64, "timestamp", "less than"),
+    ("robot as a number", "robot", 7, "robot", "string"),
+    ("unknown scene field", "colour", "red", "colour", "extra"),
+    ("unknown annotation field", f"{CLASSIFICATION}.colour", "red", f"{CLASSIFICATION}.colour",
+     "extra"),
+    ("annotations not a list", f"{A}", {"a": 1}, A, "list"),
+    ("annotation without _type", f"{CLASSIFICATION}._type", DELETE, CLASSIFICATION,
+     "not a kind of Annotation"),
+    ("misspelt _type", f"{CLASSIFICATION}._type", "pm.annotation.Clasification",
+     CLASSIFICATION, "did you mean 'pm.annotation.Classification'"),
+    ("hypothesis among annotations", f"{CLASSIFICATION}._type", "pm.hypothesis.ImageROI",
+     CLASSIFICATION, "not a kind of Annotation"),
+    ("_type not text", f"{CLASSIFICATION}._type", 12, CLASSIFICATION, "not a kind"),
+    ("NaN coordinate", f"{LOCATION}.position.0", float("nan"), f"{LOCATION}.position.0",
+     "finite"),
+    ("infinite coordinate", f"{LOCATION}.position.2", float("inf"), f"{LOCATION}.position.2",
+     "finite"),
+    ("two coordinates", f"{LOCATION}.position", [1.0, 2.0], f"{LOCATION}.position.2",
+     "required"),
+    ("coordinate as text", f"{LOCATION}.position.1", "left", f"{LOCATION}.position.1",
+     "number"),
+    ("confidence above 1", f"{CLASSIFICATION}.confidence", 1.5,
+     f"{CLASSIFICATION}.confidence", "less than or equal to 1"),
+    ("negative confidence", f"{CLASSIFICATION}.confidence", -0.1,
+     f"{CLASSIFICATION}.confidence", "greater than or equal to 0"),
+    ("negative box", f"{ROI}.box.0", -3, f"{ROI}.box.0", "greater than or equal to 0"),
+    ("zero quaternion", "camera_pose.rotation", [0, 0, 0, 0], "camera_pose.rotation",
+     "length 1"),
+    ("pHash not hex", f"{ROI}.phash", "not-a-hash-at-all", f"{ROI}.phash", "pattern"),
+    ("bad base64", f"{VFH}.vector.base64", "@@@not base64@@@", f"{VFH}.vector",
+     "not valid base64"),
+    ("bytes do not fit the shape", f"{VFH}.vector.shape", [309], f"{VFH}.vector", "needs 1236"),
+    ("huge array", f"{VFH}.vector.shape", [100_000, 100_000, 100], f"{VFH}.vector",
+     "larger than"),
+    ("array of words", f"{VFH}.vector", ["a", "b"], f"{VFH}.vector", "numbers only"),
+    ("ragged array", f"{VFH}.vector", [[1, 2], [3]], f"{VFH}.vector", "inhomogeneous"),
+    ("unknown dtype", f"{VFH}.vector.dtype", "float-ish", f"{VFH}.vector", "unknown dtype"),
+    ("image that does not decode", f"{ROI}.crop.png", b64(b"\x89PNG but not really"),
+     f"{ROI}.crop", "does not decode"),
+    ("image path without a folder", f"{ROI}.crop", {"path": "crop.png"}, f"{ROI}.crop",
+     "needs a scene-log folder"),
+    ("1-D image", f"{ROI}.mask", {"data": [1, 2, 3], "encoding": "mono8"}, f"{ROI}.mask.data",
+     "2-D or 3-D"),
+    ("intrinsics of 8 numbers", "camera.k", [1, 0, 0, 0, 1, 0, 0, 0], "camera.k.8", "required"),
+    ("probability above 1", f"{A}.18.probability", 2, f"{A}.18.probability", "less than"),
+    ("unknown log level", f"{A}.19.level", "fatal", f"{A}.19.level", "'debug'"),
+    ("cluster id not hex", "clusters.1._id", "cluster-one", "clusters.1._id", "object id"),
+]
+
+
+@pytest.mark.parametrize("name, path, value, where, words", MALFORMED,
+                         ids=[m[0] for m in MALFORMED])
+def test_malformed_input_names_the_field_and_writes_nothing(store, name, path, value, where,
+                                                           words):
+    bad = valid_scene(seed=1, timestamp=STAMP + 1)
+    container, key = at(bad, path)
+    if value is DELETE:
+        del container[key]
+    else:
+        container[key] = value
+    before = snapshot(store)
+    with pytest.raises(IngestError) as refused:
+        IngestService(store).ingest_batch([valid_scene(seed=2, timestamp=STAMP + 2), bad])
+    problems = refused.value.problems
+    assert any(p["item"] == 1 and p["path"] == where for p in problems), problems
+    assert words.lower() in str(refused.value).lower(), str(refused.value)
+    assert all(p["item"] == 1 for p in problems)  # the valid scene is not blamed
+    assert snapshot(store) == before  # nothing of the batch was written
+
+
+def test_a_scene_that_is_not_an_object_is_refused(store):
+    with pytest.raises(IngestError, match="JSON object, not list"):
+        IngestService(store).ingest([valid_scene()])
+
+
+def test_interchange_json_round_trips_exactly(store, kitchen_rgb):
+    scene = synthetic.scene(np.random.default_rng(3), STAMP + 3, 3, kitchen_rgb)
+    scene.images["color"] = Image(data=kitchen_rgb)
+    scene.images["depth"] = Image(data=np.random.default_rng(4).random((4, 5), np.float32),
+                                  encoding="32FC1")
+    assign_ids(scene)  # ids travel in JSON too, so the stored scene can equal this one
+    ids = IngestService(store).ingest(json.loads(scene.model_dump_json(by_alias=True)))
+    assert ids.created and ids.scene_id == scene.id
+    assert store.get_scene(ids.scene_id) == scene
+
+
+def test_reingesting_returns_the_same_ids(store):
+    service = IngestService(store)
+    first = service.ingest(valid_scene(seed=5, timestamp=STAMP + 5))
+    before = snapshot(store)
+    again = service.ingest(valid_scene(seed=5, timestamp=STAMP + 5))
+    assert (again.scene_id, again.cluster_ids) == (first.scene_id, first.cluster_ids)
+    assert not again.created and snapshot(store) == before
+
+
+def test_after_store_stages_see_only_new_scenes(store):
+    seen = []
+    service = IngestService(store, after_store=[lambda scenes: seen.append(
+        [s.timestamp for s in scenes])])
+    service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6),
+                          valid_scene(seed=7, timestamp=STAMP + 7)])
+    service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6)])
+    assert seen == [[STAMP + 6, STAMP + 7]]
+
+
+def test_scene_log_folder_round_trip(store, tmp_path, kitchen_rgb):
+    scenes = [synthetic.scene(np.random.default_rng(10 + i), STAMP + 100 + i, 2, kitchen_rgb)
+              for i in range(5)]
+    scenes[0].images["color"] = Image(data=kitchen_rgb)
+    for scene in scenes:
+        assign_ids(scene)
+    assert write_scene_log(scenes, tmp_path) == 5
+    assert len(list((tmp_path / "images").glob("*.png"))) == 5 * 2 * 2 + 1  # crops, masks, frame
+    ingested = list(IngestService(store).ingest_stream(read_scene_log(tmp_path),
+                                                       {"folder": tmp_path}))
+    assert [i.ids.created for i in ingested] == [True] * 5
+    for original, item in zip(scenes, ingested, strict=True):
+        assert store.get_scene(item.ids.scene_id) == original
+
+
+def test_scene_log_arrays_from_npy_files_and_paths_that_escape(store, tmp_path):
+    vector = np.arange(308, dtype="<f4")
+    np.save(tmp_path / "vfh.npy", vector)
+    scene = valid_scene(seed=20, timestamp=STAMP + 200)
+    scene["clusters"][0]["annotations"][7]["vector"] = {"path": "vfh.npy"}
+    (tmp_path / "one.json").write_text(json.dumps(scene))
+    (ingested,) = IngestService(store).ingest_stream(read_scene_log(tmp_path),
+                                                     {"folder": tmp_path})
+    stored = store.get_cluster(ingested.ids.cluster_ids[0]).annotations_of(FeatureVector)[0]
+    assert stored.vector.tobytes() == vector.tobytes()
+
+    (tmp_path / "one.json").unlink()
+    for escape in ("../outside.png", "/etc/hostname", "images/../../x.png"):
+        scene["clusters"][0]["hypotheses"][0]["crop"] = {"path": escape, "encoding": "bgr8"}
+        scene["timestamp"] += 1
+        (tmp_path / "bad.json").write_text(json.dumps(scene))
+        with pytest.raises(IngestError, match="leaves the scene-log folder|relative file path"):
+            list(IngestService(store).ingest_stream(read_scene_log(tmp_path),
+                                                    {"folder": tmp_path}))
+
+
+def test_scene_log_problems_name_file_and_line(store, tmp_path):
+    good = json.dumps(valid_scene(seed=30, timestamp=STAMP + 300))
+    (tmp_path / "log.jsonl").write_text(good + "\n" + good[: len(good) // 2] + "\n")
+    with pytest.raises(IngestError, match="log.jsonl:2: .*not valid JSON"):
+        list(IngestService(store).ingest_stream(read_scene_log(tmp_path)))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(IngestError, match="holds no .json"):
+        list(read_scene_log(tmp_path / "empty"))
+    with pytest.raises(IngestError, match="no such directory"):
+        list(read_scene_log(tmp_path / "missing"))
+
+
+def test_validation_of_a_scene_object_passes_through():
+    scene = Scene(timestamp=1)
+    from percept_memory.ingest.service import validate
+
+    assert validate(scene) is scene

@@ -204,3 +204,28 @@ def test_validation_of_a_scene_object_passes_through():
     from percept_memory.ingest.service import validate
 
     assert validate(scene) is scene
+
+
+def test_a_stream_lands_every_valid_batch_before_an_invalid_one(store):
+    consolidated = []
+    service = IngestService(store, batch_size=2,
+                            after_store=[lambda scenes: consolidated.extend(scenes)])
+    items = [(f"item {i}", valid_scene(seed=40 + i, timestamp=STAMP + 400 + i)) for i in range(5)]
+    items[4][1]["timestamp"] = "later"  # the third batch is invalid
+    landed = []
+    with pytest.raises(IngestError, match="item 4: timestamp"):
+        for ingested in service.ingest_stream(items):
+            landed.append(ingested)
+    assert store.scenes.count_documents(
+        {"timestamp": {"$gte": STAMP + 400, "$lt": STAMP + 405}}) == 4
+    assert sorted(s.timestamp for s in consolidated) == [STAMP + 400 + i for i in range(4)]
+    assert len(landed) == 2  # the batch in flight landed but was not handed out
+
+
+def test_a_stream_repeating_a_scene_across_batches_stores_it_once(store):
+    same = valid_scene(seed=50, timestamp=STAMP + 500)
+    items = [("a", same), ("b", valid_scene(seed=51, timestamp=STAMP + 501)), ("c", same)]
+    results = [i.ids for i in IngestService(store, batch_size=1).ingest_stream(items)]
+    assert [r.created for r in results] == [True, True, False]
+    assert results[0].scene_id == results[2].scene_id
+    assert store.scenes.count_documents({"timestamp": STAMP + 500}) == 1

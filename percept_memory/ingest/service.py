@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import islice
 from typing import Any, NamedTuple
@@ -90,18 +91,37 @@ class IngestService:
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
         any item is invalid (the IngestError names every problem, by label or index)."""
-        return self._store(self._validated(items, context, labels))
+        scenes = self._validated(items, context, labels)
+        return self._stored(scenes, self.store.put_scenes(scenes))
 
     def ingest_stream(
         self, items: Iterable[tuple[str, Scene | Mapping]], context: Mapping | None = None
     ) -> Iterator[Ingested]:
         """Store a long stream of (label, scene) batch by batch (importers, the demo),
-        yielding each scene with its ids as its batch lands. Labels name the item in errors."""
+        yielding each scene with its ids as its batch lands. Labels name items in errors.
+
+        Pipelined: while a writer thread commits one batch (pymongo waits on the server
+        without holding the GIL), this thread validates and encodes the next one."""
         iterator = iter(items)
-        while batch := list(islice(iterator, self.batch_size)):
-            scenes = self._validated([data for _, data in batch], context,
-                                     [label for label, _ in batch])
-            yield from map(Ingested, scenes, self._store(scenes))
+        landed: list[Ingested] = []
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmem-writer") as writer:
+            pending: tuple[list[Scene], Future] | None = None
+            try:
+                while batch := list(islice(iterator, self.batch_size)):
+                    scenes = self._validated([data for _, data in batch], context,
+                                             [label for label, _ in batch])
+                    prepared = self.store.prepare_scenes(scenes)
+                    if pending is not None:
+                        previous, pending = pending, None
+                        yield from self._landed(*previous)
+                    pending = (scenes, writer.submit(self.store.commit_scenes, prepared))
+            finally:
+                if pending is not None:  # lands (and is consolidated) even if a later batch
+                    landed = self._landed(*pending)  # was invalid or the caller stopped
+        yield from landed
+
+    def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
+        return list(map(Ingested, scenes, self._stored(scenes, write.result())))
 
     @staticmethod
     def _validated(items, context, labels) -> list[Scene]:
@@ -115,8 +135,8 @@ class IngestService:
             raise IngestError(problems)
         return scenes
 
-    def _store(self, scenes: list[Scene]) -> list[SceneIds]:
-        results = self.store.put_scenes(scenes)
+    def _stored(self, scenes: list[Scene], results: list[SceneIds]) -> list[SceneIds]:
+        """Run the after-store stages on the scenes that are new, then hand the ids back."""
         created = [scene for scene, ids in zip(scenes, results, strict=True) if ids.created]
         if created:
             for stage in self.after_store:

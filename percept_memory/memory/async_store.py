@@ -22,7 +22,6 @@ from percept_memory.converters import content_id
 
 from . import documents as docs
 from .errors import (
-    DuplicateId,
     NotFound,
     StoreError,
     TooLarge,
@@ -74,16 +73,17 @@ class AsyncMemoryStore(StoreBase):
 
     async def put_scenes(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
         """See MemoryStore.put_scenes: new scenes in one transaction, stored ones not again."""
-        try:
-            return await self._put_new(scenes)
-        except DuplicateId:  # another writer may have stored some of them since we looked
-            return await self._put_new(scenes)
+        return await self.commit_scenes(await self.prepare_scenes(scenes))
 
-    async def _put_new(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+    async def prepare_scenes(self, scenes: Sequence[Scene]) -> docs.PreparedWrite:
         fresh, results = docs.partition(scenes, await self._stored(scenes))
-        if not fresh:
-            return results
         written = docs.scene_documents(fresh, self.gridfs_threshold)
+        return docs.PreparedWrite(scenes, fresh, results, written)
+
+    async def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
+        written = prepared.documents
+        if not written.scenes:
+            return prepared.results
 
         async def work(session):
             await self._insert(written, session)
@@ -91,13 +91,15 @@ class AsyncMemoryStore(StoreBase):
         try:
             await self._transaction(work)
         except (DuplicateKeyError, BulkWriteError) as error:
+            if await self._stored(prepared.fresh):  # another writer stored some meanwhile
+                return await self.commit_scenes(await self.prepare_scenes(prepared.scenes))
             raise self._duplicate(error) from None
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
         await self._catalogue(written.type_names)
-        return results
+        return prepared.results
 
     async def _stored(self, scenes: Sequence[Scene]) -> dict:
         if not scenes:

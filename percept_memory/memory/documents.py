@@ -8,7 +8,7 @@ queries never join. Both stores, sync and async, use these functions and only ad
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 
@@ -55,6 +55,17 @@ class Documents:
             self.blobs.update(ctx.blobs)
         self.type_names |= ctx.type_names
         return doc
+
+
+@dataclass
+class PreparedWrite:
+    """Scenes ready to be written: their ids (stored or assigned) and the documents of the
+    new ones (`fresh`)."""
+
+    scenes: Sequence[Scene]
+    fresh: list[Scene]
+    results: list[SceneIds]
+    documents: Documents
 
 
 def assign_ids(scene: Scene) -> SceneIds:

@@ -123,26 +123,32 @@ class MemoryStore(StoreBase):
         them or none); ids are assigned in place. A scene is identified by its robot and
         timestamp: one stored before is not written again and its stored ids come back with
         `created=False`, so a retried or repeated ingest never duplicates anything."""
-        try:
-            return self._put_new(scenes)
-        except DuplicateId:  # another writer may have stored some of them since we looked
-            return self._put_new(scenes)
+        return self.commit_scenes(self.prepare_scenes(scenes))
 
-    def _put_new(self, scenes: Sequence[Scene]) -> list[docs.SceneIds]:
+    def prepare_scenes(self, scenes: Sequence[Scene]) -> docs.PreparedWrite:
+        """The first half of put_scenes: find what is stored, assign ids, encode. Separate so
+        a pipeline can encode the next batch while the previous one is being written."""
         fresh, results = docs.partition(scenes, self._stored(scenes))
-        if not fresh:
-            return results
         written = docs.scene_documents(fresh, self.gridfs_threshold)
+        return docs.PreparedWrite(scenes, fresh, results, written)
+
+    def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
+        """The second half of put_scenes: write the new scenes in one transaction."""
+        written = prepared.documents
+        if not written.scenes:
+            return prepared.results
         try:
             self._transaction(lambda session: self._insert(written, session))
         except (DuplicateKeyError, BulkWriteError) as error:
+            if self._stored(prepared.fresh):  # another writer stored some meanwhile: again
+                return self.commit_scenes(self.prepare_scenes(prepared.scenes))
             raise self._duplicate(error) from None
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
         self._catalogue(written.type_names)
-        return results
+        return prepared.results
 
     def _stored(self, scenes: Sequence[Scene]) -> dict:
         """(robot, timestamp) -> SceneIds of those of `scenes` that are stored."""

@@ -21,7 +21,6 @@ from percept_memory.converters import ImageCodec, register_codec
 from .base import Model, Timestamp, stored_type
 from .json_forms import array_from_json, array_to_json, image_from_json, image_to_json
 
-
 NDArray = Annotated[
     np.ndarray,
     PlainValidator(array_from_json),

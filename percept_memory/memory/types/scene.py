@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from typing import TypeVar
 
-from percept_memory.converters import Unknown
-
 from .annotations import Annotation, Location, LogLine, Relation
 from .base import Id, Identifiable, Timestamp, polymorphic, stored_type
 from .hypotheses import Hypothesis

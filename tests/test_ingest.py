@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -229,3 +230,19 @@ def test_a_stream_repeating_a_scene_across_batches_stores_it_once(store):
     assert [r.created for r in results] == [True, True, False]
     assert results[0].scene_id == results[2].scene_id
     assert store.scenes.count_documents({"timestamp": STAMP + 500}) == 1
+
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+
+def test_the_published_schema_is_the_current_one():
+    published = json.loads((DOCS / "scene.schema.json").read_text())
+    assert published == Scene.model_json_schema(), "run `pmem schema > docs/scene.schema.json`"
+
+
+def test_the_published_example_ingests(store):
+    example = json.loads((DOCS / "example-scene.json").read_text())
+    ids = IngestService(store).ingest(example)
+    stored = store.get_scene(ids.scene_id)
+    assert stored.clusters[0].annotations[-1].type_name == "lab.annotation.Weight"
+    assert stored.clusters[0].hypotheses[0].crop.data.shape == (8, 8, 3)

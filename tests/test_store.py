@@ -231,7 +231,9 @@ def test_robosherlock_annotations_we_do_not_know_survive_storage(store):
     cluster = Cluster(annotations=[decode(a) for a in rs_annotations])
     assert all(isinstance(a, Unknown) for a in cluster.annotations)
     scene = Scene(timestamp=rs_object["lastSeen"], robot="pr2", clusters=[cluster])
-    store.put_scene(scene)
+    ids = store.put_scene(scene)
+    assert ids.annotation_ids == [[a["_id"] for a in rs_annotations]]
+    assert store.put_scene(scene).annotation_ids == ids.annotation_ids
     back = store.get_cluster(cluster.id)
     assert [bson.encode(encode(a)) for a in back.annotations] == [
         bson.encode(a) for a in rs_annotations

@@ -74,10 +74,17 @@ def assign_ids(scene: Scene) -> SceneIds:
     for cluster in scene.clusters:
         ids.cluster_ids.append(cluster.ensure_id())
         cluster.scene_id = ids.scene_id
-        ids.annotation_ids.append(
-            [a.ensure_id() for a in cluster.annotations if isinstance(a, Annotation)]
-        )
+        found = map(annotation_id, cluster.annotations)
+        ids.annotation_ids.append([annotation for annotation in found if annotation is not None])
     return ids
+
+
+def annotation_id(annotation: Annotation | Unknown):
+    """The id of an annotation, assigned if it is one of ours; a foreign (Unknown) annotation
+    has the id it was stored with, if any. The same rule as `stored_ids` reads back."""
+    if isinstance(annotation, Unknown):
+        return annotation.fields.get("_id")
+    return annotation.ensure_id()
 
 
 def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:

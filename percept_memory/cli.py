@@ -9,15 +9,25 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+from pathlib import Path
 from typing import Any
 
 import click
+import uvicorn
 from pydantic import ValidationError
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from percept_memory.ingest import kitchen_week, rgbd, robosherlock
+from percept_memory.ingest.scene_log import read_scene_log
+from percept_memory.ingest.service import ImportSummary, IngestError, IngestService
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
 from percept_memory.memory.settings import Settings, settings_help
 from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Scene
+from percept_memory.webui.app import create_app
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -33,7 +43,7 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
-        except (EmbeddedMongoError, StoreError, ValidationError) as exc:
+        except (EmbeddedMongoError, StoreError, IngestError, ValidationError) as exc:
             raise click.ClickException(str(exc)) from exc
 
 
@@ -139,3 +149,141 @@ def info(settings: Settings, as_json: bool) -> None:
             click.echo(f"  {name:<{width}}  {count:>9,}")
     if not report["types"]:
         click.echo("  (no annotations stored yet)")
+
+
+# --- pmem import: bring percepts in -----------------------------------------------------------
+
+
+def ingest_with_progress(
+    store: MemoryStore, source: str, items, context: dict | None = None
+) -> ImportSummary:
+    """Feed (label, scene) items through the ingest service with a progress bar on stderr."""
+    summary = ImportSummary()
+    with Progress(
+        TextColumn(f"[bold]{source}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        console=Console(stderr=True), transient=True,
+    ) as progress:
+        task = progress.add_task(source, total=None)
+        for ingested in IngestService(store).ingest_stream(items, context):
+            summary.add(ingested)
+            progress.advance(task)
+    return summary
+
+
+def echo_summary(source: str, summary: ImportSummary) -> None:
+    click.echo(f"{source}: {summary.scenes_new} new scenes, {summary.scenes_existing} stored "
+               f"before, {summary.clusters} clusters")
+    for name, count in sorted(summary.types.items()):
+        click.echo(f"  {name:<36} {count:>8,}")
+
+
+def labelled(source: str, scenes):
+    return ((f"{source} scene at {scene.timestamp}", scene) for scene in scenes)
+
+
+@main.group(name="import")
+def import_() -> None:
+    """Bring percepts into the memory (scenes already stored are not duplicated)."""
+
+
+@import_.command(name="scene-log")
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.pass_obj
+def import_scene_log(settings: Settings, folder: Path) -> None:
+    """A folder of scenes in the interchange format v1 (see `pmem schema`)."""
+    with MemoryStore.open(settings) as store:
+        summary = ingest_with_progress(store, folder.name, read_scene_log(folder),
+                                       {"folder": folder})
+    echo_summary(str(folder), summary)
+
+
+@import_.command(name="robosherlock")
+@click.argument("folder", required=False,
+                type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--uri", help="a live RoboSherlock MongoDB instead of a mongodump folder")
+@click.option("--db", "database", help="the RoboSherlock database name (with --uri)")
+@click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
+@click.pass_obj
+def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None,
+                        database: str | None, robot: str) -> None:
+    """RoboSherlock's storage: a mongodump FOLDER, or a live database (--uri and --db)."""
+    if (folder is None) == (uri is None) or (uri is not None and not database):
+        raise click.UsageError("give a mongodump FOLDER, or --uri and --db")
+    scenes = robosherlock.read_dump(folder, robot) if folder else robosherlock.read_database(
+        uri, database, robot)
+    source = folder.name if folder else f"{database}@{redacted(uri)}"
+    with MemoryStore.open(settings) as store:
+        summary = ingest_with_progress(store, source, labelled(source, scenes))
+    echo_summary(source, summary)
+
+
+@import_.command(name="rgbd")
+@click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
+@click.pass_obj
+def import_rgbd(settings: Settings, folder: Path, robot: str) -> None:
+    """RGB-D samples: PNG + depth PNG + viewpoint, or PNG + PCD (+ ground-truth .lbl)."""
+    with MemoryStore.open(settings) as store:
+        summary = ingest_with_progress(store, folder.name,
+                                       labelled(folder.name, rgbd.read_samples(folder, robot)))
+    echo_summary(str(folder), summary)
+
+
+@main.command()
+def schema() -> None:
+    """Print the JSON Schema of a scene (interchange format v1)."""
+    click.echo(json.dumps(Scene.model_json_schema(), indent=2))
+
+
+# --- pmem serve / pmem demo -------------------------------------------------------------------
+
+
+@main.command()
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", default=8000, show_default=True, type=int)
+@click.pass_obj
+def serve(settings: Settings, host: str, port: int) -> None:
+    """Run the web app and the HTTP API (OpenAPI at /docs)."""
+    with MemoryStore.open(settings) as store:
+        click.echo(f"percept-memory at http://{host}:{port}/docs", err=True)
+        uvicorn.run(create_app(store, settings), host=host, port=port, log_level="warning")
+
+
+@main.command()
+@click.option("--days", default=7, show_default=True, help="days of the generated kitchen week")
+@click.option("--serve/--no-serve", "serving", default=True, show_default=True,
+              help="serve the web app once the data is in")
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", default=8000, show_default=True, type=int)
+@click.pass_obj
+def demo(settings: Settings, days: int, serving: bool, host: str, port: int) -> None:
+    """The demo: the embedded database with the real RoboSherlock data and a generated kitchen
+    week, then the web app. Running it again adds nothing that is there already."""
+    with MemoryStore.open(settings) as store:
+        for source, scenes in demo_sources(days):
+            echo_summary(source, ingest_with_progress(store, source, labelled(source, scenes)))
+        if serving:
+            click.echo(f"percept-memory demo at http://{host}:{port}/docs  (Ctrl-C stops)")
+            uvicorn.run(create_app(store, settings), host=host, port=port, log_level="warning")
+
+
+def demo_sources(days: int):
+    """(name, scenes) of everything the demo loads: real data first, then the kitchen week."""
+    data = shared_data_dir()
+    for folder in sorted((data / "samples").iterdir()):
+        yield f"samples/{folder.name}", rgbd.read_samples(folder)
+    for folder in sorted((data / "mongodump").iterdir()):
+        yield f"mongodump/{folder.name}", robosherlock.read_dump(folder)
+    yield f"kitchen week ({days} days)", kitchen_week.generate(days=days).scenes
+
+
+def shared_data_dir() -> Path:
+    """The real RoboSherlock data: PMEM_SHARED_DATA, else shared/data/robosherlock beside the
+    checkout."""
+    configured = os.environ.get("PMEM_SHARED_DATA")
+    folder = Path(configured) if configured else (
+        Path(__file__).resolve().parents[2] / "shared" / "data" / "robosherlock")
+    if not folder.is_dir():
+        raise click.ClickException(
+            f"no RoboSherlock data at {folder}: set PMEM_SHARED_DATA to the robosherlock folder")
+    return folder

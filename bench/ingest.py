@@ -1,0 +1,143 @@
+"""Sustained ingest benchmark; prints JSON.
+
+Scenes of 6 clusters x 20 annotations with 64 px crops cut from the real kitchen frame go in
+(a) in-process through IngestService.ingest_stream (batches, pipelined) and (b) over HTTP:
+JSON batches POSTed on loopback to `pmem serve` running in its own process. Target in-process:
+>= 2,000 clusters/s. Both write to a scratch database on the same mongod, dropped afterwards.
+
+Usage: python bench/ingest.py [--scenes N] [--batch N] [--http-scenes N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import secrets
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+from rich.console import Console
+from rich.progress import Progress
+
+from percept_memory.ingest import synthetic
+from percept_memory.ingest.service import IngestService
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+
+KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples/kitchen"
+CLUSTERS = 6
+TARGET = 2000
+
+
+def kitchen_image() -> np.ndarray | None:
+    found = sorted(KITCHEN.glob("rgb_*.png"))
+    return cv2.imread(str(found[0])) if found else None
+
+
+def scenes(count: int, start: int, image, seed: int):
+    rng = np.random.default_rng(seed)
+    return [synthetic.scene(rng, start + i * 33_000_000, CLUSTERS, image) for i in range(count)]
+
+
+def in_process(store: MemoryStore, count: int, batch: int, image, progress: Progress) -> dict:
+    generated = scenes(count, 1_700_000_000_000_000_000, image, seed=1)
+    task = progress.add_task("in-process", total=count)
+    service = IngestService(store, batch_size=batch)
+    start = time.perf_counter()
+    for _ in service.ingest_stream((str(i), s) for i, s in enumerate(generated)):
+        progress.advance(task)
+    seconds = time.perf_counter() - start
+    return {
+        "scenes": count,
+        "batch": batch,
+        "clusters_per_s": round(count * CLUSTERS / seconds),
+        "annotations_per_s": round(count * CLUSTERS * 20 / seconds),
+        "target_clusters_per_s": TARGET,
+        "met": count * CLUSTERS / seconds >= TARGET,
+    }
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def over_http(db: str, count: int, batch: int, image, progress: Progress) -> dict:
+    generated = scenes(count, 1_800_000_000_000_000_000, image, seed=2)
+    bodies = [
+        "[" + ",".join(s.model_dump_json(by_alias=True) for s in generated[i : i + batch]) + "]"
+        for i in range(0, count, batch)
+    ]
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "percept_memory", "serve", "--port", str(port)],
+        env={**os.environ, "PMEM_DB": db, "PMEM_MAX_REQUEST_MB": "256"},
+    )
+    task = progress.add_task("over HTTP", total=count)
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
+            _wait_until_up(client)
+            start = time.perf_counter()
+            for body in bodies:
+                response = client.post("/api/scenes", content=body,
+                                       headers={"content-type": "application/json"})
+                response.raise_for_status()
+                progress.advance(task, len(response.json()["scenes"]))
+            seconds = time.perf_counter() - start
+    finally:
+        server.terminate()
+        server.wait(30)
+    return {
+        "scenes": count,
+        "batch": batch,
+        "request_mb": round(sum(map(len, bodies)) / len(bodies) / 2**20, 2),
+        "clusters_per_s": round(count * CLUSTERS / seconds),
+        "requests_per_s": round(len(bodies) / seconds, 2),
+    }
+
+
+def _wait_until_up(client: httpx.Client) -> None:
+    for _ in range(300):
+        try:
+            client.get("/api/schema/scene").raise_for_status()
+            return
+        except httpx.HTTPError:
+            time.sleep(0.1)
+    raise RuntimeError("pmem serve did not come up")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scenes", type=int, default=1000)
+    parser.add_argument("--batch", type=int, default=32)
+    parser.add_argument("--http-scenes", type=int, default=300)
+    args = parser.parse_args()
+    image = kitchen_image()
+    settings = Settings(db=f"pmem_bench_{secrets.token_hex(4)}")
+    store = MemoryStore.open(settings)
+    try:
+        with Progress(transient=True, console=Console(stderr=True)) as progress:
+            result = {
+                "benchmark": "ingest",
+                "clusters_per_scene": CLUSTERS,
+                "annotations_per_cluster": 20,
+                "in_process": in_process(store, args.scenes, args.batch, image, progress),
+                "http": over_http(settings.db, args.http_scenes, args.batch, image, progress),
+            }
+    finally:
+        store.client.drop_database(settings.db)
+        store.close()
+    json.dump(result, sys.stdout, indent=2)
+    print()
+
+
+if __name__ == "__main__":
+    main()

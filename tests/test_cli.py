@@ -13,8 +13,10 @@ from pymongo import MongoClient
 
 from percept_memory.cli import main
 from percept_memory.ingest import synthetic
+from percept_memory.ingest.scene_log import write_scene_log
 from percept_memory.memory.mongod import find_mongod
 
+from .conftest import ROBOSHERLOCK
 from .test_mongod import free_port
 
 
@@ -72,3 +74,49 @@ def test_a_standalone_server_is_refused_with_the_fix(standalone_mongod):
     result = pmem("info", MONGODB_URI=standalone_mongod)
     assert result.exit_code == 1
     assert "replica set" in result.stderr and "--replSet" in result.stderr
+
+
+def test_import_commands_summarise_and_never_duplicate(mongo_uri, db_name, tmp_path, store):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    first = pmem("import", "rgbd", str(ROBOSHERLOCK / "samples" / "low_noise"), **env)
+    assert first.exit_code == 0, first.output
+    assert "2 new scenes, 0 stored before, 17 clusters" in first.stdout
+    assert "pm.annotation.ColorHistogram" in first.stdout
+    again = pmem("import", "rgbd", str(ROBOSHERLOCK / "samples" / "low_noise"), **env)
+    assert "0 new scenes, 2 stored before" in again.stdout
+
+    dump = pmem("import", "robosherlock", str(ROBOSHERLOCK / "mongodump" / "IJRRScenes"), **env)
+    assert "11 new scenes" in dump.stdout, dump.output
+    both = pmem("import", "robosherlock", str(tmp_path), "--uri", mongo_uri, **env)
+    assert both.exit_code == 2 and "FOLDER, or --uri and --db" in both.output
+
+    write_scene_log([synthetic.scene(np.random.default_rng(1), 5_000 + i, 2) for i in range(3)],
+                    tmp_path / "log")
+    log = pmem("import", "scene-log", str(tmp_path / "log"), **env)
+    assert "3 new scenes, 0 stored before, 6 clusters" in log.stdout, log.output
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "scenes.jsonl").write_text('{"robot": "pr2"}\n')
+    bad = pmem("import", "scene-log", str(tmp_path / "bad"), **env)
+    assert bad.exit_code == 1
+    assert "scenes.jsonl:1: timestamp: Field required" in bad.stderr
+    assert "Traceback" not in bad.output
+
+
+def test_demo_loads_real_data_and_the_kitchen_week_once(mongo_uri, db_name):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": f"{db_name}_demo"}
+    try:
+        first = pmem("demo", "--no-serve", "--days", "2", **env)
+        assert first.exit_code == 0, first.output
+        for source in ("samples/kitchen", "samples/low_noise", "mongodump/IJRRScenes",
+                       "mongodump/PnP09ObjSymbolicGTFixed", "kitchen week (2 days)"):
+            assert f"{source}: " in first.stdout
+        assert "mongodump/PnP09ObjSymbolicGTFixed: 35 new scenes" in first.stdout
+        second = pmem("demo", "--no-serve", "--days", "2", **env)
+        assert " 0 new scenes" in second.stdout and "1 new" not in second.stdout
+        with MongoClient(mongo_uri) as client:
+            scenes = client[env["PMEM_DB"]]["scenes"]
+            keys = {(d["robot"], d["timestamp"]) for d in scenes.find({}, {"_id": 0})}
+            assert scenes.count_documents({}) == len(keys)
+    finally:
+        with MongoClient(mongo_uri) as client:
+            client.drop_database(env["PMEM_DB"])

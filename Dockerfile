@@ -1,8 +1,9 @@
-# The percept-memory app (CLI, later the web app and the workers), for docker-compose.
+# The percept-memory app (CLI and web app; later the workers), for docker-compose.
 FROM python:3.11-slim
 WORKDIR /app
 COPY pyproject.toml README.md ./
 COPY percept_memory ./percept_memory
 RUN pip install --no-cache-dir .
 # MongoDB comes from MONGODB_URI (the compose file's replica set), not the embedded server.
-CMD ["pmem", "info"]
+EXPOSE 8000
+CMD ["pmem", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -11,6 +11,7 @@ Usage: python bench/ingest.py [--scenes N] [--batch N] [--http-scenes N]
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import secrets
@@ -48,6 +49,10 @@ def scenes(count: int, start: int, image, seed: int):
 
 def in_process(store: MemoryStore, count: int, batch: int, image, progress: Progress) -> dict:
     generated = scenes(count, 1_700_000_000_000_000_000, image, seed=1)
+    # A robot streams scenes in; it does not hold a thousand of them at once. Freezing the
+    # pre-generated ones keeps the garbage collector's work what it is in a stream (it would
+    # otherwise walk these ~0.5 M objects on every full collection: 25 % of the time).
+    gc.freeze()
     task = progress.add_task("in-process", total=count)
     service = IngestService(store, batch_size=batch)
     start = time.perf_counter()

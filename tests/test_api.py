@@ -104,3 +104,9 @@ def test_a_configured_token_guards_writes(store):
     right = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer s3cret"})
     assert right.status_code == 201
     assert guarded.get("/api/schema/scene").status_code == 200  # reading needs no token
+
+
+def test_the_api_docs_need_no_cdn(client):
+    page = client.get("/docs").text
+    assert "/static/swagger/swagger-ui-bundle.js" in page and "cdn" not in page.lower()
+    assert client.get("/static/swagger/swagger-ui-bundle.js").status_code == 200

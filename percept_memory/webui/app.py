@@ -13,8 +13,11 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.openapi.docs import get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
+from swagger_ui_bundle import swagger_ui_path
 
 from percept_memory.ingest.service import IngestError, IngestService
 from percept_memory.memory.settings import Settings
@@ -41,7 +44,10 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         title="percept-memory",
         description="Long-term spatio-temporal memory for robot perception.",
         version="0.1.0",
+        docs_url=None,  # served below with Swagger UI from the package: no CDN
+        redoc_url=None,
     )
+    app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
     service = IngestService(store)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
@@ -59,6 +65,15 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         problems = [{"path": ".".join(map(str, e["loc"])), "message": e["msg"]}
                     for e in error.errors()]
         return error_response(422, "the request is not valid", problems)
+
+    @app.get("/docs", include_in_schema=False)
+    def api_docs() -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=app.openapi_url, title="percept-memory API",
+            swagger_js_url="/static/swagger/swagger-ui-bundle.js",
+            swagger_css_url="/static/swagger/swagger-ui.css",
+            swagger_favicon_url="/static/swagger/favicon-32x32.png",
+        )
 
     @app.get("/api/schema/scene", summary="JSON Schema of a scene (interchange format v1)")
     def scene_json_schema() -> dict[str, Any]:

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ValidationError
 from pydantic.fields import FieldInfo
 
 from percept_memory.converters import Unknown, registered_types
-from percept_memory.memory.types import Image, PointCloud, Pose
+from percept_memory.memory.types import Image, PointCloud, Pose, SpatialVolume
 
 # BSON strings are UTF-8: no lone surrogates.
 TEXT = st.text(st.characters(exclude_categories=("Cs",)), max_size=12)
@@ -62,11 +62,22 @@ UNKNOWN = st.builds(
     ),
 )
 
+FINITE = st.floats(-1e3, 1e3)
+CORNERS = st.tuples(*[st.tuples(FINITE, FINITE).map(sorted)] * 3).map(
+    lambda axes: (tuple(lo for lo, _ in axes), tuple(hi for _, hi in axes)))
+SPATIAL_VOLUMES = st.one_of(  # a box or a sphere, built so, not filtered from random draws
+    st.builds(lambda frame, corners: SpatialVolume(frame=frame, box_min=corners[0],
+                                                   box_max=corners[1]), TEXT, CORNERS),
+    st.builds(SpatialVolume, frame=TEXT, center=st.tuples(FINITE, FINITE, FINITE),
+              radius=st.floats(0, 1e3)),
+)
+
 SPECIAL: dict[Any, st.SearchStrategy] = {
     np.ndarray: ARRAYS,
     Image: IMAGES,
     PointCloud: POINT_CLOUDS,
     Unknown: UNKNOWN,
+    SpatialVolume: SPATIAL_VOLUMES,
 }
 
 

@@ -89,7 +89,7 @@ def store_overhead(count: int, image, progress: Progress) -> dict:
     stamps = iter(range(1_700_000_000_000_000_000, 2**62, 40_000_000))
 
     def raw_insert(docs: documents.Documents) -> None:
-        raw_scenes.insert_one(docs.scene)
+        raw_scenes.insert_many(docs.scenes)
         raw_clusters.insert_many(docs.clusters)
 
     ours, raw = [], []
@@ -101,7 +101,7 @@ def store_overhead(count: int, image, progress: Progress) -> dict:
             ours.append(timed(store.put_scene, [scene]))
             other = synthetic.scene(rng, next(stamps), 6, image)
             documents.assign_ids(other)
-            written = documents.scene_documents(other, settings.gridfs_threshold)
+            written = documents.scene_documents([other], settings.gridfs_threshold)
             raw.append(timed(raw_insert, [written]))
             progress.advance(task)
     finally:

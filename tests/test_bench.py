@@ -1,0 +1,25 @@
+"""The benchmark scripts still run and print their JSON (tiny sizes; no timing asserted)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.mark.parametrize("script, args, keys", [
+    ("converter.py", ["--clusters", "20", "--scenes", "6"], {"codec", "store"}),
+    ("ingest.py", ["--scenes", "12", "--batch", "4", "--http-scenes", "8"],
+     {"in_process", "http"}),
+])
+def test_benchmark_prints_its_json(mongo_uri, script, args, keys):
+    done = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, "MONGODB_URI": mongo_uri})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert keys <= set(json.loads(done.stdout))

@@ -132,7 +132,9 @@ def test_a_scene_is_identified_by_robot_and_time(store):
         Text(text="milk")])])
     stored = store.put_scene(scene)
     before = snapshot(store)
-    repeated = store.put_scene(Scene(timestamp=scene.timestamp, robot="tiago"))
+    twin = Scene(timestamp=scene.timestamp, robot="tiago", clusters=[Cluster()])
+    repeated = store.put_scene(twin)
+    assert twin.id is None and twin.clusters[0].id is None  # given no ids that were not stored
     assert not repeated.created
     assert repeated.scene_id == scene.id
     assert repeated.annotation_ids == stored.annotation_ids

@@ -76,9 +76,7 @@ class AsyncMemoryStore(StoreBase):
         return await self.commit_scenes(await self.prepare_scenes(scenes))
 
     async def prepare_scenes(self, scenes: Sequence[Scene]) -> docs.PreparedWrite:
-        fresh, results = docs.partition(scenes, await self._stored(scenes))
-        written = docs.scene_documents(fresh, self.gridfs_threshold)
-        return docs.PreparedWrite(scenes, fresh, results, written)
+        return docs.prepared(scenes, {}, self.gridfs_threshold)
 
     async def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
         written = prepared.documents
@@ -91,9 +89,12 @@ class AsyncMemoryStore(StoreBase):
         try:
             await self._transaction(work)
         except (DuplicateKeyError, BulkWriteError) as error:
-            if await self._stored(prepared.fresh):  # another writer stored some meanwhile
-                return await self.commit_scenes(await self.prepare_scenes(prepared.scenes))
-            raise self._duplicate(error) from None
+            stored = await self._stored(prepared.fresh)
+            if not stored:
+                raise self._duplicate(error) from None
+            docs.undo_ids(prepared, stored)
+            return await self.commit_scenes(docs.prepared(
+                prepared.scenes, await self._stored(prepared.scenes), self.gridfs_threshold))
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
@@ -106,6 +107,8 @@ class AsyncMemoryStore(StoreBase):
             return {}
         query = docs.stored_query(map(docs.scene_key, scenes))
         found = await self.scenes.find(query, docs.STORED_IDS_PROJECTION).to_list()
+        if not found:  # the common case: all new, one round trip
+            return {}
         cluster_ids = [c for doc in found for c in doc["clusters"]]
         clusters = self.clusters.find({"_id": {"$in": cluster_ids}}, {"annotations._id": 1})
         return docs.stored_by_key(found, await clusters.to_list())

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
+from typing import Any
 
 from bson import ObjectId
 
@@ -57,15 +58,45 @@ class Documents:
         return doc
 
 
+IdSnapshot = list[tuple[Any, str, Any]]
+
+
 @dataclass
 class PreparedWrite:
-    """Scenes ready to be written: their ids (stored or assigned) and the documents of the
-    new ones (`fresh`)."""
+    """Scenes ready to be written: their ids (stored or assigned), the documents of the new
+    ones (`fresh`), and the ids each scene had before, to undo the assignment for a scene that
+    turns out to be stored already."""
 
     scenes: Sequence[Scene]
     fresh: list[Scene]
     results: list[SceneIds]
     documents: Documents
+    before: list[IdSnapshot]
+
+
+def prepared(scenes: Sequence[Scene], stored: dict, threshold: int) -> PreparedWrite:
+    """Assign ids and encode the scenes not in `stored` (their key -> SceneIds)."""
+    before = [id_snapshot(scene) for scene in scenes]
+    fresh, results = partition(scenes, stored)
+    return PreparedWrite(scenes, fresh, results, scene_documents(fresh, threshold), before)
+
+
+def id_snapshot(scene: Scene) -> IdSnapshot:
+    """Every id assign_ids may set, with its value now."""
+    items: IdSnapshot = [(scene, "id", scene.id)]
+    for cluster in scene.clusters:
+        items += [(cluster, "id", cluster.id), (cluster, "scene_id", cluster.scene_id)]
+        items += [(a, "id", a.id) for a in cluster.annotations if isinstance(a, Annotation)]
+    return items
+
+
+def undo_ids(write: PreparedWrite, stored: dict) -> None:
+    """Put back the ids of the scenes found stored: their objects keep no ids that were never
+    written."""
+    for scene, snapshot in zip(write.scenes, write.before, strict=True):
+        if scene_key(scene) in stored:
+            for obj, field_name, value in snapshot:
+                setattr(obj, field_name, value)
 
 
 def assign_ids(scene: Scene) -> SceneIds:

@@ -126,23 +126,27 @@ class MemoryStore(StoreBase):
         return self.commit_scenes(self.prepare_scenes(scenes))
 
     def prepare_scenes(self, scenes: Sequence[Scene]) -> docs.PreparedWrite:
-        """The first half of put_scenes: find what is stored, assign ids, encode. Separate so
-        a pipeline can encode the next batch while the previous one is being written."""
-        fresh, results = docs.partition(scenes, self._stored(scenes))
-        written = docs.scene_documents(fresh, self.gridfs_threshold)
-        return docs.PreparedWrite(scenes, fresh, results, written)
+        """The first half of put_scenes: assign ids and encode. Separate so a pipeline can
+        encode the next batch while the previous one is being written. Optimistic: the scenes
+        are taken to be new; the unique robot + timestamp index tells otherwise at commit."""
+        return docs.prepared(scenes, {}, self.gridfs_threshold)
 
     def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
-        """The second half of put_scenes: write the new scenes in one transaction."""
+        """The second half of put_scenes: write the new scenes in one transaction. When some
+        were stored already (before, or by another writer meanwhile), their stored ids are
+        looked up and the others written."""
         written = prepared.documents
         if not written.scenes:
             return prepared.results
         try:
             self._transaction(lambda session: self._insert(written, session))
         except (DuplicateKeyError, BulkWriteError) as error:
-            if self._stored(prepared.fresh):  # another writer stored some meanwhile: again
-                return self.commit_scenes(self.prepare_scenes(prepared.scenes))
-            raise self._duplicate(error) from None
+            stored = self._stored(prepared.fresh)
+            if not stored:
+                raise self._duplicate(error) from None
+            docs.undo_ids(prepared, stored)
+            return self.commit_scenes(docs.prepared(
+                prepared.scenes, self._stored(prepared.scenes), self.gridfs_threshold))
         except (DocumentTooLarge, OperationFailure) as error:
             if not too_large(error):
                 raise
@@ -157,6 +161,8 @@ class MemoryStore(StoreBase):
         found = list(self.scenes.find(
             docs.stored_query(map(docs.scene_key, scenes)), docs.STORED_IDS_PROJECTION
         ))
+        if not found:  # the common case: all new, one round trip
+            return {}
         cluster_ids = [c for doc in found for c in doc["clusters"]]
         clusters = self.clusters.find({"_id": {"$in": cluster_ids}}, {"annotations._id": 1})
         return docs.stored_by_key(found, clusters)

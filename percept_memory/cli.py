@@ -21,7 +21,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from percept_memory.ingest import kitchen_week, rgbd, robosherlock
 from percept_memory.ingest.scene_log import read_scene_log
-from percept_memory.ingest.service import ImportSummary, IngestError, IngestService
+from percept_memory.ingest.service import ImportSummary, IngestError, IngestService, SourceError
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
 from percept_memory.memory.settings import Settings, settings_help
@@ -43,7 +43,7 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
-        except (EmbeddedMongoError, StoreError, IngestError, ValidationError) as exc:
+        except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError) as exc:
             raise click.ClickException(str(exc)) from exc
 
 

@@ -87,6 +87,9 @@ def test_import_commands_summarise_and_never_duplicate(mongo_uri, db_name, tmp_p
 
     dump = pmem("import", "robosherlock", str(ROBOSHERLOCK / "mongodump" / "IJRRScenes"), **env)
     assert "11 new scenes" in dump.stdout, dump.output
+    not_a_dump = pmem("import", "robosherlock", str(tmp_path), **env)
+    assert not_a_dump.exit_code == 1 and "holds no cas.bson" in not_a_dump.stderr
+    assert "Traceback" not in not_a_dump.output
     both = pmem("import", "robosherlock", str(tmp_path), "--uri", mongo_uri, **env)
     assert both.exit_code == 2 and "FOLDER, or --uri and --db" in both.output
 

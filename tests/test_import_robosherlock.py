@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import shutil
 from collections import Counter
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from percept_memory.ingest.robosherlock import (
     read_database,
     read_dump,
 )
-from percept_memory.ingest.service import IngestService
+from percept_memory.ingest.service import IngestService, SourceError
 from percept_memory.memory.types import (
     Classification,
     FeatureVector,
@@ -315,7 +316,7 @@ def test_a_malformed_document_names_collection_id_and_field():
 
 
 def test_a_folder_that_is_no_dump_is_refused(tmp_path):
-    with pytest.raises(FileNotFoundError, match="no cas.bson"):
+    with pytest.raises(SourceError, match="no cas.bson"):
         read_dump(tmp_path)
 
 
@@ -338,3 +339,13 @@ def test_read_database_gives_the_same_scenes_as_the_dump(mongo_uri, restored_pnp
     from_database = list(read_database(mongo_uri, restored_pnp))
     assert len(from_database) == 35
     assert from_database == list(read_dump(PNP))
+
+
+def test_a_truncated_dump_names_the_file(tmp_path):
+    dump = tmp_path / "IJRRScenes"
+    shutil.copytree(ROBOSHERLOCK / "mongodump" / "IJRRScenes", dump)
+    scene_file = dump / "scene.bson"
+    scene_file.chmod(0o644)
+    scene_file.write_bytes(scene_file.read_bytes()[:-100])  # cut inside the last document
+    with pytest.raises(SourceError, match=r"scene.bson is not a mongodump BSON file"):
+        list(read_dump(dump))

@@ -44,6 +44,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.transform import Rotation
 
+from percept_memory.ingest.service import SourceError
 from percept_memory.ingest.synthetic import KINECT
 from percept_memory.memory.types import (
     Cluster,
@@ -89,7 +90,7 @@ REFINEMENTS = 2
 VISIBILITY_TOLERANCE = 0.02  # m, a point this far behind the nearest one is still seen
 
 
-class SampleError(ValueError):
+class SampleError(SourceError):
     """A sample file that cannot be imported; the message names the file and the problem."""
 
     def __init__(self, path: Path, problem: str):

@@ -62,6 +62,7 @@ from pydantic import ValidationError
 from pymongo import MongoClient
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
+from percept_memory.ingest.service import SourceError
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,
@@ -99,7 +100,7 @@ NAMED_ENCODINGS = {("u1", 1): "mono8", ("u1", 3): "bgr8", ("u1", 4): "bgra8"}
 PHASH = re.compile("[0-9a-f]{16}")
 
 
-class RoboSherlockFormatError(ValueError):
+class RoboSherlockFormatError(SourceError):
     """A RoboSherlock document that does not say what the format says it should."""
 
     def __init__(self, collection: str, doc_id: Any, field: str, problem: str):
@@ -117,7 +118,7 @@ def read_dump(folder: Path, robot: str = "pr2") -> Iterator[Scene]:
     """The frames of a `mongodump` folder of RoboSherlock's storage, oldest first."""
     folder = Path(folder)
     if not (folder / f"{CAS}.bson").is_file():
-        raise FileNotFoundError(
+        raise SourceError(
             f"{folder} holds no {CAS}.bson: not a mongodump folder of a RoboSherlock database"
         )
     collections = {
@@ -141,7 +142,7 @@ def read_collections(
 ) -> Iterator[Scene]:
     """The frames of RoboSherlock's collections (name -> its documents), oldest first."""
     if CAS not in collections:
-        raise ValueError(f"no {CAS!r} collection: this is not a RoboSherlock database")
+        raise SourceError(f"no {CAS!r} collection: this is not a RoboSherlock database")
     frames = sorted(((_frame_time(doc), doc) for doc in collections[CAS]), key=lambda f: f[0])
     by_id = {name: _by_id(name, docs) for name, docs in collections.items() if name != CAS}
     objects = _place_objects(by_id.pop(PERSISTENT_OBJECTS, {}), [t for t, _ in frames])
@@ -162,7 +163,7 @@ def _dump_documents(path: Path) -> Iterator[dict]:
         try:
             yield from bson.decode_file_iter(file)
         except InvalidBSON as error:
-            raise ValueError(f"{path} is not a mongodump BSON file: {error}") from None
+            raise SourceError(f"{path} is not a mongodump BSON file: {error}") from None
 
 
 # --- errors that name the collection, the document and the field -----------------------------

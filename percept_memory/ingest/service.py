@@ -41,6 +41,11 @@ class IngestError(ValueError):
         super().__init__(f"{len(problems)} problem(s) in the input:\n" + "\n".join(lines) + more)
 
 
+class SourceError(ValueError):
+    """A file, folder or database that cannot be read as percepts; the message names it and
+    says what is wrong (importers' errors derive from this)."""
+
+
 def problems_of(error: ValidationError, item: Any) -> list[dict]:
     """pydantic's errors as IngestError problems (no input values echoed back)."""
     return [

@@ -22,6 +22,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from percept_memory.ingest import kitchen_week, rgbd, robosherlock
 from percept_memory.ingest.scene_log import read_scene_log
 from percept_memory.ingest.service import ImportSummary, IngestError, IngestService, SourceError
+from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
 from percept_memory.memory.settings import Settings, settings_help
@@ -164,7 +165,8 @@ def ingest_with_progress(
         console=Console(stderr=True), transient=True,
     ) as progress:
         task = progress.add_task(source, total=None)
-        for ingested in IngestService(store).ingest_stream(items, context):
+        service = IngestService(store, after_store=[Consolidator(store)])
+        for ingested in service.ingest_stream(items, context):
             summary.add(ingested)
             progress.advance(task)
     return summary
@@ -287,3 +289,19 @@ def shared_data_dir() -> Path:
         raise click.ClickException(
             f"no RoboSherlock data at {folder}: set PMEM_SHARED_DATA to the robosherlock folder")
     return folder
+
+
+@main.command()
+@click.pass_obj
+def reconsolidate(settings: Settings) -> None:
+    """Rebuild objects and events from the stored scenes, in time order (after a change of
+    the identity parameters): the same store always gives the same belief state."""
+    with MemoryStore.open(settings) as store:
+        total = store.scenes.estimated_document_count()
+        with Progress(TextColumn("[bold]reconsolidate"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+            task = bar.add_task("scenes", total=total)
+            count = Consolidator(store).rebuild(lambda: bar.advance(task))
+        objects = store.db["objects"].count_documents({})
+        events = store.db["events"].count_documents({})
+    click.echo(f"reconsolidated {count} scenes: {objects} objects, {events} events")

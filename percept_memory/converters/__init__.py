@@ -10,8 +10,10 @@ from .codec import (
     Unknown,
     decode,
     encode,
+    escape_key,
     foreign_codec_names,
     register_codec,
+    unescape_key,
 )
 from .images import ImageCodec
 from .registry import (
@@ -41,10 +43,12 @@ __all__ = [
     "content_id",
     "decode",
     "encode",
+    "escape_key",
     "foreign_codec_names",
     "name_of",
     "register_codec",
     "register_type",
     "registered_types",
     "reserve_namespace",
+    "unescape_key",
 ]

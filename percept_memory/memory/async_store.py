@@ -126,6 +126,11 @@ class AsyncMemoryStore(StoreBase):
             raise NotFound("cluster", cluster_id)
         return docs.decode_cluster(doc, await self._blobs([doc]))
 
+    async def get_clusters(self, cluster_ids: Sequence[ObjectId]) -> dict[ObjectId, Cluster]:
+        found = await self.clusters.find({"_id": {"$in": list(cluster_ids)}}).to_list()
+        blobs = await self._blobs(found)
+        return {doc["_id"]: docs.decode_cluster(doc, blobs) for doc in found}
+
     async def update_cluster(self, cluster: Cluster) -> None:
         if cluster.id is None:
             raise StoreError("the cluster has no id: store it as part of a scene first")

@@ -182,6 +182,12 @@ class MemoryStore(StoreBase):
             raise NotFound("cluster", cluster_id)
         return docs.decode_cluster(doc, self._blobs([doc]))
 
+    def get_clusters(self, cluster_ids: Sequence[ObjectId]) -> dict[ObjectId, Cluster]:
+        """Several clusters at once, by id (ids not stored are left out)."""
+        found = list(self.clusters.find({"_id": {"$in": list(cluster_ids)}}))
+        blobs = self._blobs(found)
+        return {doc["_id"]: docs.decode_cluster(doc, blobs) for doc in found}
+
     def update_cluster(self, cluster: Cluster) -> None:
         """Replace a stored cluster by the given version of it."""
         if cluster.id is None:

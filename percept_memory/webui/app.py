@@ -20,6 +20,7 @@ from starlette.exceptions import HTTPException
 from swagger_ui_bundle import swagger_ui_path
 
 from percept_memory.ingest.service import IngestError, IngestService
+from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
@@ -48,7 +49,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
-    service = IngestService(store)
+    service = IngestService(store, after_store=[Consolidator(store)])
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
 

@@ -11,7 +11,7 @@ querying by its fields follow from its annotations. A class may also say
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 from pydantic import AliasChoices, Field
@@ -23,9 +23,13 @@ Probability = Annotated[float, Field(ge=0.0, le=1.0)]
 
 
 class Annotation(Identifiable):
-    """Base of all annotations. `source` names the annotator that produced it."""
+    """Base of all annotations. `source` names the annotator that produced it.
+
+    `naming_weight` says how much the type's labels name the object (thesis 5.4.5: names from
+    word statistics): a product or a logo names it, a shape or a colour only describes it."""
 
     source: str = ""
+    naming_weight: ClassVar[float] = 0.0
 
     def labels(self) -> list[str]:
         return []
@@ -73,6 +77,8 @@ class Location(Annotation):
 class Classification(Annotation):
     """A classifier's verdict, with the per-class confidences when it gives them."""
 
+    naming_weight: ClassVar[float] = 1.0
+
     class_name: str = Field(validation_alias=AliasChoices("class_name", "classname"))
     confidence: Probability | None = None
     classifier: str = ""
@@ -92,6 +98,8 @@ class Classification(Annotation):
 @stored_type("pm.annotation.Detection", aliases=("rs.annotation.Detection",))
 class Detection(Annotation):
     """A detector found a known object (by name) in the hypothesis."""
+
+    naming_weight: ClassVar[float] = 1.0
 
     name: str
     confidence: Probability | None = None
@@ -196,6 +204,8 @@ class Text(Annotation):
 class Logo(Annotation):
     """A brand logo recognised on the object."""
 
+    naming_weight: ClassVar[float] = 1.5
+
     brand: str
     confidence: Probability | None = None
     box: Box | None = None
@@ -215,6 +225,8 @@ ProductValue = str | bool | int | float
 class Product(Annotation):
     """A product matched in a registry: name, brand and free key-values (category, weight,
     ingredients, perishability, ...)."""
+
+    naming_weight: ClassVar[float] = 2.0
 
     name: str | None = None
     brand: str | None = None
@@ -251,6 +263,8 @@ class WebLookup(Annotation):
     """One result of a web image lookup (thesis 5.4): a category (text, logo, product, similar
     image, ...), its title, the matched region and links."""
 
+    naming_weight: ClassVar[float] = 1.0
+
     service: str = ""
     category: str
     title: str
@@ -274,6 +288,8 @@ class Tracking(Annotation):
 @stored_type("pm.annotation.GroundTruth")
 class GroundTruth(Annotation):
     """The true class (and pose) of the object, from a labelled data set."""
+
+    naming_weight: ClassVar[float] = 2.0
 
     class_name: str
     pose: Pose | None = None

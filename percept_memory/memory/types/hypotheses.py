@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pydantic import Field, model_validator
 
 from .base import Model, stored_type
@@ -13,6 +15,7 @@ class Hypothesis(Model):
 
 
 PHASH_PATTERN = "^[0-9a-f]{16}$"
+PHASH_SIGMA_BITS = 6.5  # g(4 bits) = 0.91, g(12) = 0.43, g(28) = 0.01
 
 
 @stored_type("pm.hypothesis.ImageROI")
@@ -28,11 +31,13 @@ class ImageROI(Hypothesis):
 
     @staticmethod
     def similarity(a: ImageROI, b: ImageROI) -> float | None:
-        """1 - normalised Hamming distance of the perceptual hashes."""
+        """The thesis' g (eq. 6.1) of the Hamming distance of the perceptual hashes, sigma
+        calibrated on the kitchen week's crops: the same object's hashes lie a median 4 bits
+        apart (95 % within 12), different objects' a median 28 (95 % beyond 22)."""
         if a.phash is None or b.phash is None:
             return None
         distance = (int(a.phash, 16) ^ int(b.phash, 16)).bit_count()
-        return 1.0 - distance / 64
+        return math.exp(-((distance / (2 * PHASH_SIGMA_BITS)) ** 2))
 
 
 @stored_type("pm.hypothesis.PointCluster")

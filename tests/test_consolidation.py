@@ -1,0 +1,98 @@
+"""The belief state kept by the consolidation stage, on the real store and the kitchen week."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+from pymongo import MongoClient
+
+from percept_memory.ingest import kitchen_week
+from percept_memory.ingest.service import IngestService
+from percept_memory.memory.consolidation import Consolidator
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.memory.types import Cluster, Location, Scene, SemanticColor, Shape
+
+
+@pytest.fixture(scope="module")
+def week():
+    return kitchen_week.generate(days=1)
+
+
+@pytest.fixture(scope="module")
+def consolidated(store, week):
+    consolidator = Consolidator(store)
+    items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
+    list(IngestService(store, after_store=[consolidator]).ingest_stream(items))
+    return consolidator
+
+
+def test_every_cluster_is_an_object_with_an_event(store, week, consolidated):
+    clusters = sum(len(s.clusters) for s in week.scenes)
+    assert store.clusters.count_documents({"object_id": None}) == 0
+    seen = Counter(e["explanation"] for e in store.db.events.find({"cluster_id": {"$ne": None}}))
+    assert sum(seen.values()) == clusters
+    assert set(seen) <= {"appear", "stay", "move", "newview"}
+    assert seen["stay"] > seen["appear"] > 0
+
+
+def test_events_keep_the_alternatives_with_probabilities(store, consolidated):
+    for event in store.db.events.find({"cluster_id": {"$ne": None}}).limit(200):
+        total = sum(a["probability"] for a in event["alternatives"])
+        assert 0 < event["probability"] <= 1 and total <= 1 + 1e-9
+        assert event["alternatives"] == sorted(event["alternatives"],
+                                               key=lambda a: -a["probability"])
+
+
+def test_objects_are_named_from_their_evidence(store, consolidated):
+    ketchup = store.db.objects.find_one({"names": "ketchup"})
+    assert ketchup is not None and ketchup["name"] in ("heinz", "heinz tomato ketchup", "ketchup")
+    assert store.db.objects.count_documents({"name": "kellogg's"}) >= 1
+
+
+@pytest.fixture
+def empty_store(mongo_uri, db_name):
+    """A store of its own, with no belief state yet."""
+    client = MongoClient(mongo_uri, **CLIENT_OPTIONS)
+    memory = MemoryStore(client, f"{db_name}_probe", gridfs_threshold=128 * 1024)
+    memory.prepare()
+    yield memory
+    client.drop_database(f"{db_name}_probe")
+    memory.close()
+
+
+def test_out_of_view_is_hidden_and_a_place_seen_empty_is_disappeared(empty_store, week):
+    """One object on the table; the robot looks at another region (hidden), then at the table
+    again without it (disappeared). Camera poses of the kitchen week: the frustum decides."""
+    store = empty_store
+    consolidator = Consolidator(store)
+    table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
+    other = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
+    mug = Cluster(annotations=[
+        Location(region="table", position=table.clusters[0].position),
+        SemanticColor(ratios={"blue": 1.0}), Shape(shape="cylinder")])
+    base = 2_000_000_000_000_000_000
+    scenes = [Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
+                    camera=view.camera, clusters=clusters)
+              for i, (view, clusters) in enumerate([(table, [mug]), (other, []), (table, [])])]
+    for scene in scenes:
+        store.put_scene(scene)
+        consolidator.consolidate(scene)
+    mug_id = store.get_cluster(mug.id).object_id
+    history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
+    assert history == ["appear", "hidden", "disappear"]
+    assert store.db.objects.find_one({"_id": mug_id})["state"] == "disappeared"
+
+
+def test_reconsolidation_is_deterministic(store, consolidated):
+    def partition():
+        groups: dict = {}
+        for doc in store.clusters.find({}, {"object_id": 1}):
+            groups.setdefault(doc["object_id"], set()).add(doc["_id"])
+        return {frozenset(g) for g in groups.values()}
+
+    consolidated.rebuild()
+    first = partition()
+    consolidated.rebuild()
+    assert partition() == first
+    assert store.db.objects.count_documents({}) == len(first)

@@ -72,7 +72,7 @@ TABLE_SPACING = 3.0  # m between table centres
 OBJECTS = 15
 MIN_SEPARATION = 0.15  # m between two objects on a table (they have a size)
 EDGE = 0.05  # object centres stay this far inside a table's edge
-MIN_MOVE = 0.3  # m: a move displaces an object by at least this (less is not a move)
+MIN_MOVE = 0.5  # m: 2 sigma of the proximity: nearer is "the same place" by eq. 6.5 itself
 VIEW_JITTER = 0.25  # m: the 1 m wide view window is centred within this of a table's centre
 VIEW_MARGIN = 0.3  # m around the table (depth) for believed positions counted in view
 ACTIONS = range(1, 6)
@@ -426,9 +426,9 @@ def parameters(args: argparse.Namespace) -> Parameters:
 
 def add_parameter_options(parser: argparse.ArgumentParser) -> None:
     for f in fields(Parameters):
+        thesis = ", 0.25 as in the thesis" if f.name == "proximity_sigma" else ""
         parser.add_argument("--" + f.name.replace("_", "-"), type=float, default=None,
-                            help=f"Parameters.{f.name} (default: identity.py's"
-                                 f"{', 0.25 as in the thesis' if f.name == 'proximity_sigma' else ''})")
+                            help=f"Parameters.{f.name} (default: identity.py's{thesis})")
 
 
 def main(argv: list[str] | None = None) -> int:

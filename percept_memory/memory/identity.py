@@ -51,15 +51,16 @@ class Parameters:
     # m: 2-3x the noise of a position (robot localisation + segmentation, about 2 cm in the
     # kitchen); the thesis' synthetic tables (noise up to 10 cm) used 0.25
     proximity_sigma: float = 0.05
-    prior_move: float = 0.3  # how likely an object moved between two looks at it
-    prior_newview: float = 0.2  # how likely the same place shows another side of it
-    prior_appear: float = 0.05  # likelihood of "a new object"
-    prior_gone: float = 0.05  # likelihood of "an object in view is not there any more"
+    # Tuned on the thesis' synthetic protocol (bench/tune_identity.py, sigma 0.025 and 0.05).
+    prior_move: float = 0.65  # how likely an object moved between two looks at it
+    prior_newview: float = 0.93  # how likely the same place shows another side of it
+    prior_appear: float = 0.53  # likelihood of "a new object"
+    prior_gone: float = 0.87  # likelihood of "an object in view is not there any more"
     unknown_similarity: float = 0.5  # when two observations share no comparable evidence
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
-    evidence_floor: float = 0.01  # measured on the kitchen week (bench/identity.py tunes it)
+    evidence_floor: float = 0.001
 
 
 @dataclass

@@ -1,0 +1,164 @@
+"""The pure identity decision core (memory/identity.py): thesis figure 6.9 and the introduction's
+three cups, with our own annotation types and positions in metres. No database."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from percept_memory.memory.identity import (
+    Explanation,
+    Known,
+    Observation,
+    Parameters,
+    resolve,
+)
+from percept_memory.memory.types import (
+    Classification,
+    ColorHistogram,
+    SemanticColor,
+    Shape,
+    Text,
+)
+
+# The default Parameters: priors tuned on the thesis' synthetic protocol
+# (bench/tune_identity.py), proximity sigma for kitchen positions (good to about 2 cm).
+DEFAULTS = Parameters()
+
+STAY, MOVE, NEWVIEW = Explanation.STAY, Explanation.MOVE, Explanation.NEWVIEW
+APPEAR, HIDDEN, DISAPPEAR = Explanation.APPEAR, Explanation.HIDDEN, Explanation.DISAPPEAR
+
+
+def histogram(peaks: dict[int, float], bins: int = 16) -> ColorHistogram:
+    values = np.full(bins, 0.01)
+    for index, weight in peaks.items():
+        values[index] += weight
+    return ColorHistogram(histogram=values / values.sum(), space="H")
+
+
+def plate():
+    return [Shape(shape="flat"), Classification(class_name="plate"),
+            SemanticColor(ratios={"white": 0.9, "grey": 0.1}), histogram({0: 1.0})]
+
+
+def ice_tea(flavour: str, green: float):
+    return [Shape(shape="box"), Classification(class_name="tetrapak"),
+            SemanticColor(ratios={"green": green, "white": 0.3, "yellow": 0.7 - green}),
+            Text(text=f"ICE TEA {flavour}"), histogram({5: green, 3: 1 - green})]
+
+
+def magazine():
+    return [Shape(shape="flat"), Classification(class_name="magazine"),
+            SemanticColor(ratios={"red": 0.5, "white": 0.4, "black": 0.1}),
+            Text(text="KITCHEN weekly special"), histogram({0: 0.6, 15: 0.4})]
+
+
+def cup():
+    return [Shape(shape="cylinder"), Classification(class_name="cup"),
+            SemanticColor(ratios={"blue": 0.8, "white": 0.2}), histogram({10: 1.0})]
+
+
+def obs(key, x: float, y: float, evidence) -> Observation:
+    return Observation(key, (x, y, 0.8), evidence)
+
+
+def known(key, x: float, y: float, evidence, in_view: bool = True) -> Known:
+    return Known(key, obs(f"old-{key}", x, y, evidence), in_view)
+
+
+def outcome(decisions) -> dict:
+    return {d.key: (d.object, d.explanation) for d in decisions}
+
+
+def test_two_identical_plates_are_kept_apart_by_position():
+    """Figure 6.9, first scene: one plate stays, the other is moved 30 cm: no swap."""
+    before = [known("A", 0.0, 0.0, plate()), known("B", 0.4, 0.0, plate())]
+    now = [obs("n1", 0.01, -0.005, plate()), obs("n2", 0.4, 0.3, plate())]
+    assert outcome(resolve(now, before, DEFAULTS)) == {"n1": ("A", STAY), "n2": ("B", MOVE)}
+
+
+def test_magazine_gone_and_a_second_ice_tea_appears():
+    """Figure 6.9, second scene: the ice tea stays, the magazine disappears, and a new ice tea
+    much like the first appears elsewhere (neither the old ice tea nor the magazine)."""
+    before = [known("tea", 0.0, 0.0, ice_tea("peach", 0.5)),
+              known("magazine", 0.35, 0.2, magazine()),
+              known("mug", 0.7, 0.0, cup())]
+    now = [obs("n-tea", 0.008, 0.004, ice_tea("peach", 0.5)),
+           obs("n-mug", 0.69, 0.01, cup()),
+           obs("n-tea2", 0.3, -0.3, ice_tea("lemon", 0.45))]
+    assert outcome(resolve(now, before, DEFAULTS)) == {
+        "n-tea": ("tea", STAY), "n-mug": ("mug", STAY), "n-tea2": (None, APPEAR),
+        "magazine": ("magazine", DISAPPEAR)}
+
+
+def test_three_identical_cups_the_middle_one_taken_while_looking_away():
+    """The introduction's three cups: taken while out of view, the middle cup is believed
+    hidden; looking again, the two others stay (each the right one) and it disappears."""
+    cups = [known(name, x, 0.0, cup()) for name, x in (("left", 0.0), ("middle", 0.15),
+                                                       ("right", 0.3))]
+    now = [obs("n-left", 0.0, 0.0, cup()), obs("n-middle", 0.15, 0.0, cup()),
+           obs("n-right", 0.3, 0.0, cup())]
+    first = outcome(resolve(now, cups, DEFAULTS))
+    assert first == {"n-left": ("left", STAY), "n-middle": ("middle", STAY),
+                     "n-right": ("right", STAY)}
+
+    away = [Known(c.key, c.last, in_view=False) for c in cups]  # the robot looks elsewhere
+    assert outcome(resolve([], away, DEFAULTS)) == {c.key: (c.key, HIDDEN) for c in cups}
+
+    again = [obs("m-left", 0.008, -0.006, cup()), obs("m-right", 0.295, 0.01, cup())]
+    assert outcome(resolve(again, cups, DEFAULTS)) == {
+        "m-left": ("left", STAY), "m-right": ("right", STAY), "middle": ("middle", DISAPPEAR)}
+
+
+def test_a_hidden_object_moved_into_view_is_a_move():
+    before = [known("tea", 2.0, 1.0, ice_tea("peach", 0.5), in_view=False),
+              known("mug", 0.0, 0.0, cup())]
+    now = [obs("n-mug", 0.005, 0.0, cup()), obs("n-tea", 0.4, 0.1, ice_tea("peach", 0.5))]
+    assert outcome(resolve(now, before, DEFAULTS)) == {"n-mug": ("mug", STAY),
+                                                   "n-tea": ("tea", MOVE)}
+
+
+def test_a_turned_object_is_a_new_view():
+    front = [Shape(shape="box"), Classification(class_name="cereal box"),
+             SemanticColor(ratios={"yellow": 0.6, "red": 0.3, "white": 0.1}),
+             Text(text="CORN FLAKES"), histogram({2: 0.7, 0: 0.3})]
+    back = [Shape(shape="box"), Classification(class_name="cereal box"),
+            SemanticColor(ratios={"white": 0.7, "blue": 0.3}),
+            Text(text="nutrition facts per 100 g"), histogram({10: 0.6, 8: 0.4})]
+    before = [known("box", 0.5, 0.2, front), known("mug", 0.0, 0.0, cup())]
+    now = [obs("n-mug", 0.0, 0.004, cup()), obs("n-box", 0.51, 0.195, back)]
+    assert outcome(resolve(now, before, DEFAULTS)) == {"n-mug": ("mug", STAY),
+                                                   "n-box": ("box", NEWVIEW)}
+
+
+KINDS = [plate, cup, magazine, lambda: ice_tea("peach", 0.5), lambda: ice_tea("lemon", 0.4)]
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_decisions_are_globally_consistent(seed):
+    rng = np.random.default_rng(seed)
+
+    def random_evidence():
+        return KINDS[int(rng.integers(len(KINDS)))]()
+
+    before = [known(f"o{j}", *rng.uniform(0, 1, 2), random_evidence(),
+                    in_view=bool(rng.random() < 0.6)) for j in range(int(rng.integers(0, 8)))]
+    now = [obs(f"n{i}", *rng.uniform(0, 1, 2), random_evidence())
+           for i in range(int(rng.integers(0, 8)))]
+    decisions = resolve(now, before, DEFAULTS)
+
+    assert [d.key for d in decisions[:len(now)]] == [n.key for n in now]
+    claimed = [d.object for d in decisions[:len(now)] if d.object is not None]
+    assert len(claimed) == len(set(claimed))  # no object claimed twice
+    rest = decisions[len(now):]
+    assert {d.key for d in rest} == {k.key for k in before} - set(claimed)
+    in_view = {k.key: k.in_view for k in before}
+    for d in rest:
+        assert d.explanation == (DISAPPEAR if in_view[d.key] else HIDDEN)
+    for d in decisions[:len(now)]:
+        assert sum(a.probability for a in d.alternatives) == pytest.approx(1.0)
+        assert 0.0 <= d.probability <= 1.0
+        if d.object is None:
+            assert d.explanation == APPEAR
+        elif not in_view[d.object]:
+            assert d.explanation == MOVE  # formula 6: out of view, only a move

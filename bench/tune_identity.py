@@ -34,6 +34,10 @@ RANGES = {  # log-uniform ranges of the random search
     "prior_appear": (0.005, 1.0),
     "prior_gone": (0.005, 1.0),
     "evidence_floor": (0.001, 0.3),
+    "look_threshold": (0.1, 0.9),
+    "look_sharpness": (1.0, 40.0),
+    "place_threshold": (0.1, 0.9),
+    "place_sharpness": (1.0, 40.0),
 }
 STEPS = (0.5, 0.7, 0.85, 1.2, 1.4, 2.0)  # the coordinate search's factors
 LEVELS = (0.025, 0.05)

@@ -51,16 +51,21 @@ class Parameters:
     # m: 2-3x the noise of a position (robot localisation + segmentation, about 2 cm in the
     # kitchen); the thesis' synthetic tables (noise up to 10 cm) used 0.25
     proximity_sigma: float = 0.05
-    # Tuned on the thesis' synthetic protocol (bench/tune_identity.py, sigma 0.025 and 0.05).
-    prior_move: float = 0.65  # how likely an object moved between two looks at it
-    prior_newview: float = 0.93  # how likely the same place shows another side of it
-    prior_appear: float = 0.53  # likelihood of "a new object"
-    prior_gone: float = 0.87  # likelihood of "an object in view is not there any more"
+    # The rest tuned on the thesis' synthetic protocol (bench/tune_identity.py, noise 0.025 and
+    # 0.05, seed 1; bench/identity.py scores seed 0).
+    prior_move: float = 0.049  # odds that an object moved between two looks at it
+    prior_newview: float = 0.31  # odds that the same place shows another side of it
+    prior_appear: float = 1.33  # odds of "a new object" against a known one
+    prior_gone: float = 0.79  # odds of "an object in view is not there any more"
     unknown_similarity: float = 0.5  # when two observations share no comparable evidence
+    look_threshold: float = 0.70  # appearance similarity at which "same look" is even odds
+    look_sharpness: float = 16.3
+    place_threshold: float = 0.76  # proximity at which "same place" is even odds
+    place_sharpness: float = 7.76
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
-    evidence_floor: float = 0.001
+    evidence_floor: float = 0.056
 
 
 @dataclass
@@ -130,13 +135,18 @@ def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float:
 
 
 def explanations(similarity: float, near: float, in_view: bool, params: Parameters) -> dict:
-    """Likelihood of each way the new observation could be the known object."""
+    """Likelihood of each way the new observation could be the known object, relative to its
+    being another object: each piece of evidence as calibrated odds, exp(k (x - threshold)),
+    so "looks the same" and "is at the same place" are judged against thresholds tuned on
+    data rather than taken at face value."""
+    look = math.exp(params.look_sharpness * (similarity - params.look_threshold))
     if not in_view:  # its old place is not seen now: it can only have been moved here
-        return {Explanation.MOVE: similarity * params.prior_move}
+        return {Explanation.MOVE: look * params.prior_move}
+    place = math.exp(params.place_sharpness * (near - params.place_threshold))
     return {
-        Explanation.STAY: similarity * near,
-        Explanation.MOVE: similarity * (1 - near) * params.prior_move,
-        Explanation.NEWVIEW: (1 - similarity) * near * params.prior_newview,
+        Explanation.STAY: look * place,
+        Explanation.MOVE: look * params.prior_move,
+        Explanation.NEWVIEW: place * params.prior_newview,
     }
 
 

@@ -15,7 +15,7 @@ the object a Heinz logo and a "ketchup" classification were seen on.
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Sequence
 
 from bson import ObjectId
@@ -26,7 +26,7 @@ from percept_memory.converters import escape_key, unescape_key
 from .identity import Decision, Explanation, Known, Observation, Parameters, resolve
 from .store import MemoryStore
 from .types import Annotation, Cluster, Scene
-from .view import in_view
+from .view import View
 
 OBJECTS, EVENTS = "objects", "events"
 INDEXES = {
@@ -38,6 +38,8 @@ INDEXES = {
              IndexModel([("time", DESCENDING)], name="time")],
 }
 NAMES_KEPT = 3
+MAX_UNSEEN_CANDIDATES = 32
+DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 
@@ -45,9 +47,12 @@ ALTERNATIVES_KEPT = 5
 class Consolidator:
     """An after-store stage of the ingest service: consolidates every new scene, in time order."""
 
-    def __init__(self, store: MemoryStore, params: Parameters | None = None):
+    def __init__(self, store: MemoryStore, params: Parameters | None = None,
+                 max_unseen_candidates: int = MAX_UNSEEN_CANDIDATES):
         self.store = store
         self.params = params or Parameters()
+        self.max_unseen_candidates = max_unseen_candidates
+        self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         for name, indexes in INDEXES.items():
@@ -59,13 +64,11 @@ class Consolidator:
 
     def consolidate(self, scene: Scene) -> list[Decision]:
         """Decide who is who in one stored scene and record it."""
-        believed = list(self.objects.find({"state": {"$ne": "disappeared"}}))
-        last = self.store.get_clusters([o["last_cluster"] for o in believed])
-        known = [
-            Known(o["_id"], _observation(last[o["last_cluster"]]),
-                  bool(in_view(_vec(o.get("position")), scene)))
-            for o in believed if o["last_cluster"] in last
-        ]
+        believed = self._candidates(scene)
+        last = self._observations([o["last_cluster"] for o, _ in believed])
+        known = [Known(o["_id"], last[o["last_cluster"]], seen)
+                 for o, seen in believed if o["last_cluster"] in last]
+        believed = [o for o, _ in believed]
         new = [_observation(cluster) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params)
         by_id = {o["_id"]: o for o in believed}
@@ -93,6 +96,31 @@ class Consolidator:
 
         self.store._transaction(work)
         return decisions
+
+    def _observations(self, cluster_ids: list) -> dict:
+        """The evidence of stored clusters, decoded once: an observation does not change under
+        its id (an annotation appended later is seen when its object is next observed)."""
+        missing = [c for c in cluster_ids if c not in self._decoded]
+        for cluster_id, cluster in self.store.get_clusters(missing).items():
+            self._decoded[cluster_id] = _observation(cluster)
+        while len(self._decoded) > DECODED_KEPT:
+            self._decoded.popitem(last=False)
+        return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
+
+    def _candidates(self, scene: Scene) -> list[tuple[dict, bool]]:
+        """The objects this scene's clusters may be, with whether their place is in view: all
+        whose place is in view, and the most recently seen of the others (they may have been
+        moved here). Older unseen objects still persist; they are just not matched now, which
+        keeps a scene's cost independent of how many objects the memory holds."""
+        in_sight, unseen = [], []
+        view = View(scene)
+        for doc in self.objects.find({"state": {"$ne": "disappeared"}}).sort("last_seen", -1):
+            seen = bool(view.sees(_vec(doc.get("position"))))
+            if seen:
+                in_sight.append((doc, True))
+            elif len(unseen) < self.max_unseen_candidates:
+                unseen.append((doc, False))
+        return in_sight + unseen
 
     def rebuild(self, progress=None) -> int:
         """Forget the belief state and consolidate every stored scene again in time order

@@ -10,14 +10,24 @@ from .types import Scene, Vec3
 MAX_RANGE = 3.5  # m: a Kinect's depth is unreliable beyond this
 
 
-def in_view(point: Vec3 | None, scene: Scene, max_range: float = MAX_RANGE) -> bool | None:
-    """True or False, or None when the scene does not say where its camera looked."""
-    if point is None or scene.camera_pose is None or scene.camera is None:
-        return None
-    to_camera = np.linalg.inv(scene.camera_pose.matrix())
-    x, y, z = (to_camera @ np.array([*point, 1.0]))[:3]
-    if not 0.05 < z <= max_range:
-        return False
-    (fx, fy), (cx, cy) = scene.camera.focal, scene.camera.principal_point
-    u, v = fx * x / z + cx, fy * y / z + cy
-    return bool(0 <= u < scene.camera.width and 0 <= v < scene.camera.height)
+class View:
+    """The view of one scene's camera, prepared once for testing many points."""
+
+    def __init__(self, scene: Scene, max_range: float = MAX_RANGE):
+        self.known = scene.camera_pose is not None and scene.camera is not None
+        if self.known:
+            self.to_camera = np.linalg.inv(scene.camera_pose.matrix())
+            self.camera = scene.camera
+        self.max_range = max_range
+
+    def sees(self, point: Vec3 | None) -> bool | None:
+        """True or False, or None when the scene does not say where its camera looked."""
+        if point is None or not self.known:
+            return None
+        x, y, z = (self.to_camera @ np.array([*point, 1.0]))[:3]
+        if not 0.05 < z <= self.max_range:
+            return False
+        (fx, fy), (cx, cy) = self.camera.focal, self.camera.principal_point
+        u, v = fx * x / z + cx, fy * y / z + cy
+        return bool(0 <= u < self.camera.width and 0 <= v < self.camera.height)
+

@@ -11,6 +11,7 @@ querying by its fields follow from its annotations. A class may also say
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
@@ -57,8 +58,11 @@ def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
     return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in p.keys() & q.keys()))
 
 
+_WORD = re.compile(r"[^\W_]+")
+
+
 def _words(text: str) -> set[str]:
-    return {w for w in "".join(c if c.isalnum() else " " for c in text.casefold()).split()}
+    return set(_WORD.findall(text.casefold()))
 
 
 @stored_type("pm.annotation.Location")

@@ -96,3 +96,30 @@ def test_reconsolidation_is_deterministic(store, consolidated):
     consolidated.rebuild()
     assert partition() == first
     assert store.db.objects.count_documents({}) == len(first)
+
+
+def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, week):
+    store = empty_store
+    consolidator = Consolidator(store)
+    table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
+    shelf = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
+
+    def mug(view):
+        return Cluster(annotations=[
+            Location(region=view.clusters[0].region, position=view.clusters[0].position),
+            SemanticColor(ratios={"blue": 1.0}), Shape(shape="cylinder")])
+
+    base = 3_000_000_000_000_000_000
+    first, back = mug(table), mug(shelf)
+    scenes = [Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
+                    camera=view.camera, clusters=clusters)
+              for i, (view, clusters) in enumerate([(table, [first]), (table, []),
+                                                    (shelf, [back])])]
+    for scene in scenes:
+        store.put_scene(scene)
+        consolidator.consolidate(scene)
+    mug_id = store.get_cluster(first.id).object_id
+    assert store.get_cluster(back.id).object_id == mug_id
+    history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
+    assert history == ["appear", "disappear", "move"]
+    assert store.db.objects.find_one({"_id": mug_id})["state"] == "present"

@@ -79,8 +79,8 @@ class Consolidator:
             cluster = None if unseen else clusters.get(decision.key)
             object_id = decision.object if decision.object is not None else ObjectId()
             previous = by_id.get(object_id, {})
-            if unseen and previous.get("state") == _STATE[decision.explanation]:
-                continue  # events record changes: still hidden is no news
+            if unseen and previous.get("state") in (_STATE[decision.explanation], "disappeared"):
+                continue  # events record changes: still hidden (or still gone) is no news
             events.append(_event(decision, object_id, scene, cluster, previous))
             objects.append(_object_update(object_id, decision, scene, cluster, previous))
             if cluster is not None:
@@ -109,14 +109,15 @@ class Consolidator:
 
     def _candidates(self, scene: Scene) -> list[tuple[dict, bool]]:
         """The objects this scene's clusters may be, with whether their place is in view: all
-        whose place is in view, and the most recently seen of the others (they may have been
-        moved here). Older unseen objects still persist; they are just not matched now, which
-        keeps a scene's cost independent of how many objects the memory holds."""
+        believed present or hidden whose place is in view, and the most recently seen of the
+        others, disappeared ones included (they may have been moved or brought back here).
+        Older unseen objects still persist; they are just not matched now, which keeps a
+        scene's cost independent of how many objects the memory holds."""
         in_sight, unseen = [], []
         view = View(scene)
-        for doc in self.objects.find({"state": {"$ne": "disappeared"}}).sort("last_seen", -1):
-            seen = bool(view.sees(_vec(doc.get("position"))))
-            if seen:
+        for doc in self.objects.find().sort("last_seen", -1):
+            gone = doc["state"] == "disappeared"  # taken away: it may be brought back
+            if not gone and view.sees(_vec(doc.get("position"))):
                 in_sight.append((doc, True))
             elif len(unseen) < self.max_unseen_candidates:
                 unseen.append((doc, False))

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import cv2
-import httpx
+import httpx2
 import numpy as np
 from rich.console import Console
 from rich.progress import Progress
@@ -88,7 +88,7 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress) -> dic
     )
     task = progress.add_task("over HTTP", total=count)
     try:
-        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
+        with httpx2.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
             _wait_until_up(client)
             start = time.perf_counter()
             for body in bodies:
@@ -109,12 +109,12 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress) -> dic
     }
 
 
-def _wait_until_up(client: httpx.Client) -> None:
+def _wait_until_up(client: httpx2.Client) -> None:
     for _ in range(300):
         try:
             client.get("/api/schema/scene").raise_for_status()
             return
-        except httpx.HTTPError:
+        except httpx2.HTTPError:
             time.sleep(0.1)
     raise RuntimeError("pmem serve did not come up")
 

@@ -57,15 +57,19 @@ def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
     return buffer.tobytes()
 
 
-def decompress(data: bytes, encoding: str, shape: list[int], dtype: str) -> np.ndarray:
-    """The image array back from PNG or JPEG bytes, in the shape and dtype it was stored with."""
+def decode_file(data: bytes, encoding: str) -> np.ndarray:
+    """The pixels of PNG or JPEG bytes, in the channel order `encoding` names (files hold BGR)."""
     array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if array is None:
-        raise ConversionError("stored image data does not decode")
-    array = array.reshape(shape).astype(np.dtype(dtype), copy=False)
+        raise ConversionError("the image data does not decode")
     if _swaps_channels(encoding, array):
         array = array[..., [2, 1, 0, 3][: array.shape[2]]].copy()
     return array
+
+
+def decompress(data: bytes, encoding: str, shape: list[int], dtype: str) -> np.ndarray:
+    """The image array back from PNG or JPEG bytes, in the shape and dtype it was stored with."""
+    return decode_file(data, encoding).reshape(shape).astype(np.dtype(dtype), copy=False)
 
 
 class ImageCodec:

@@ -19,24 +19,16 @@ from collections import Counter, OrderedDict
 from collections.abc import Sequence
 
 from bson import ObjectId
-from pymongo import ASCENDING, DESCENDING, IndexModel, UpdateOne
+from pymongo import UpdateOne
 
 from percept_memory.converters import escape_key, unescape_key
 
 from .identity import Decision, Explanation, Known, Observation, Parameters, resolve
+from .schema import EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Annotation, Cluster, Scene
 from .view import View
 
-OBJECTS, EVENTS = "objects", "events"
-INDEXES = {
-    OBJECTS: [IndexModel([("state", ASCENDING)], name="state"),
-              IndexModel([("names", ASCENDING)], name="names"),
-              IndexModel([("region", ASCENDING), ("state", ASCENDING)], name="region_state")],
-    EVENTS: [IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),
-             IndexModel([("scene_id", ASCENDING)], name="scene"),
-             IndexModel([("time", DESCENDING)], name="time")],
-}
 NAMES_KEPT = 3
 MAX_UNSEEN_CANDIDATES = 32
 DECODED_KEPT = 4096
@@ -55,8 +47,6 @@ class Consolidator:
         self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
-        for name, indexes in INDEXES.items():
-            store.db[name].create_indexes(indexes)
 
     def __call__(self, scenes: Sequence[Scene]) -> None:
         for scene in sorted(scenes, key=lambda s: s.timestamp):
@@ -115,12 +105,15 @@ class Consolidator:
         scene's cost independent of how many objects the memory holds."""
         in_sight, unseen = [], []
         view = View(scene)
-        for doc in self.objects.find().sort("last_seen", -1):
-            gone = doc["state"] == "disappeared"  # taken away: it may be brought back
-            if not gone and view.sees(_vec(doc.get("position"))):
+        for doc in self.objects.find({"state": {"$ne": "disappeared"}}):
+            if view.sees(_vec(doc.get("position"))):
                 in_sight.append((doc, True))
-            elif len(unseen) < self.max_unseen_candidates:
+            else:
                 unseen.append((doc, False))
+        gone = self.objects.find({"state": "disappeared"}).sort("last_seen", -1)
+        unseen += [(doc, False) for doc in gone.limit(self.max_unseen_candidates)]
+        unseen.sort(key=lambda candidate: candidate[0]["last_seen"], reverse=True)
+        del unseen[self.max_unseen_candidates:]
         return in_sight + unseen
 
     def rebuild(self, progress=None) -> int:

@@ -36,6 +36,16 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("search.types", ASCENDING)], name="types"),
         IndexModel([("search.phash", ASCENDING)], name="phash", sparse=True),
     ],
+    OBJECTS: [
+        IndexModel([("state", ASCENDING), ("last_seen", DESCENDING)], name="state_seen"),
+        IndexModel([("names", ASCENDING)], name="names"),
+        IndexModel([("region", ASCENDING), ("state", ASCENDING)], name="region_state"),
+    ],
+    EVENTS: [
+        IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),
+        IndexModel([("scene_id", ASCENDING)], name="scene"),
+        IndexModel([("time", DESCENDING)], name="time"),
+    ],
     # the indexes the GridFS spec asks for, since blobs are written without pymongo's GridFS
     GRIDFS_FILES: [IndexModel([("filename", ASCENDING), ("uploadDate", ASCENDING)])],
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],

@@ -15,11 +15,11 @@ import binascii
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from pydantic import ValidationInfo
 
-from percept_memory.converters.images import compress, png_compatible
+from percept_memory.converters import ConversionError
+from percept_memory.converters.images import compress, decode_file, png_compatible
 
 MAX_ARRAY_BYTES = 512 * 2**20  # one value; a whole HTTP request is limited separately
 IMAGE_FORMATS = ("png", "jpeg")
@@ -123,11 +123,10 @@ def image_from_json(data: Any, info: ValidationInfo) -> Any:
     else:
         encoded = decode_base64(data[key], key)
         fields.setdefault("format", key)
-    pixels = cv2.imdecode(np.frombuffer(encoded, np.uint8), cv2.IMREAD_UNCHANGED)
-    if pixels is None:
-        raise ValueError(f"the {key} image does not decode")
-    if fields.get("encoding", "bgr8").startswith("rgb") and pixels.ndim == 3:
-        pixels = pixels[..., [2, 1, 0, 3][: pixels.shape[2]]]  # files hold BGR(A) order
+    try:
+        pixels = decode_file(encoded, fields.get("encoding", "bgr8"))
+    except ConversionError:
+        raise ValueError(f"the {key} image does not decode") from None
     return {**fields, "data": pixels}
 
 

@@ -1,9 +1,12 @@
 """Identity resolution benchmark: Blodow's synthetic protocol (thesis 6.3); prints JSON.
 
-This exercises the pure decision core, `percept_memory.memory.identity.resolve`, directly: the
-belief state (objects with their last observation, in-view flags from the simulated sensor) is
-kept here, in memory. Feeding the same scenes through the ingest service follows when its
-consolidation stage (objects / events collections) lands.
+Every look is a Scene fed through the real ingest service (IngestService with the
+Consolidator as its after-store stage, on the configured or embedded mongod, in a scratch
+database dropped afterwards): stored, consolidated into `objects` and `events`, the view given
+as the scene's declared view region; the decisions are read back from the events. `--direct`
+runs the decision core alone (identity.resolve, the belief kept here), for tuning. Per noise
+level the identity model starts from its prior calibration and learns the sensor's noise over
+the level's worlds, as it would on a robot.
 
 The protocol, as in the thesis:
 - 4 tables of 1 m x 1 m, their centres 3 m apart on a line (a cluster on one table is >= 2 m from
@@ -37,7 +40,7 @@ disappear, stay) like figure 6.7, whose numbers are included for comparison (its
 sigma 0.1..0.4; we take its four tables, in order, for the four noise levels of the protocol).
 Figures 6.5 and 6.6 are plots without numbers in the text.
 
-Usage: python bench/identity.py [--scenes-per-level 800] [--levels 0.025 0.05 0.075 0.1]
+Usage: python bench/identity.py [--direct] [--scenes-per-level 800] [--levels 0.025 0.05 0.075 0.1]
        [--seed 0] [--prior-move X --prior-newview X --prior-appear X --prior-gone X
        --evidence-floor X --proximity-sigma 0.25]
 """
@@ -47,6 +50,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import secrets
 import sys
 import time
 from dataclasses import dataclass, field, fields, replace
@@ -56,7 +60,12 @@ import numpy as np
 from rich.console import Console
 from rich.progress import Progress
 
+from percept_memory.ingest.service import IngestService
+from percept_memory.memory import schema
+from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.identity import (
+    Calibration,
+    Decision,
     Explanation,
     Known,
     Observation,
@@ -64,7 +73,16 @@ from percept_memory.memory.identity import (
     gaussian,
     resolve,
 )
-from percept_memory.memory.types import Annotation, stored_type
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import (
+    Annotation,
+    Cluster,
+    Location,
+    Scene,
+    SpatialVolume,
+    stored_type,
+)
 
 SIGMA = 0.25  # thesis: similarity and proximity are g(distance) with sigma 0.25
 TABLES = 4
@@ -203,6 +221,94 @@ class Belief:
     true_colour: np.ndarray | None = None
 
 
+class Direct:
+    """The decision core alone (identity.resolve); the benchmark keeps the belief state."""
+
+    remembers_gone = False
+    name = "percept_memory.memory.identity.resolve (direct)"
+
+    def __init__(self, params: Parameters) -> None:
+        self.params = params
+        self.next_key = 0
+
+    def start_level(self) -> None:
+        self.calibration = Calibration.prior(self.params)
+
+    def start_world(self) -> None:
+        pass
+
+    def decide(self, new: list[Observation], known: list[Known], region) -> list[Decision]:
+        return resolve(new, known, self.params, self.calibration)
+
+    def object_of(self, decision: Decision) -> Any:
+        if decision.object is not None:
+            return decision.object
+        self.next_key += 1
+        return self.next_key
+
+
+class ThroughIngest:
+    """Every look is a Scene given to the real ingest service: stored, then consolidated into
+    `objects` and `events` (memory/consolidation.py), with the view as the scene's declared
+    view region; the decisions are read back from the events. The database remembers objects
+    seen to disappear, so one brought back may be recognised as itself."""
+
+    remembers_gone = True
+    name = "percept_memory.ingest.IngestService -> memory.consolidation.Consolidator"
+
+    def __init__(self, params: Parameters, store: MemoryStore) -> None:
+        self.params, self.store = params, store
+        self.clock = 1_735_689_600 * 10**9
+        self.created: dict[Any, Any] = {}
+
+    def start_level(self) -> None:
+        self._forget(schema.CALIBRATION)
+        self.consolidator = Consolidator(self.store, self.params)
+        self.service = IngestService(self.store, after_store=[self.consolidator])
+
+    def start_world(self) -> None:
+        self._forget()  # a new world: the sensor's calibration stays
+
+    def _forget(self, *more: str) -> None:
+        for name in (schema.SCENES, schema.CLUSTERS, schema.OBJECTS, schema.EVENTS, *more):
+            self.store.db[name].delete_many({})
+
+    def decide(self, new: list[Observation], known: list[Known], region) -> list[Decision]:
+        x0, x1, y0, y1 = region
+        self.clock += 10**9
+        scene = Scene(
+            timestamp=self.clock, robot="bench",
+            view_region=SpatialVolume(box_min=(x0, y0, -1.0), box_max=(x1, y1, 1.0)),
+            clusters=[Cluster(annotations=[Location(position=o.position), *o.evidence])
+                      for o in new])
+        ids = self.service.ingest(scene)
+        events = list(self.store.db[schema.EVENTS].find({"scene_id": ids.scene_id}))
+        by_cluster = {e["cluster_id"]: e for e in events if e["cluster_id"] is not None}
+        unseen = {e["object_id"]: e for e in events if e["cluster_id"] is None}
+        decisions, matched = [], set()
+        for observation, cluster_id in zip(new, ids.cluster_ids, strict=True):
+            event = by_cluster[cluster_id]
+            explanation = Explanation(event["explanation"])
+            matched.add(event["object_id"])
+            if explanation is Explanation.APPEAR:
+                self.created[observation.key] = event["object_id"]
+            decisions.append(Decision(
+                observation.key, None if explanation is Explanation.APPEAR else event["object_id"],
+                explanation, event["probability"]))
+        for k in known:  # no event: still hidden, no news
+            if k.key not in matched:
+                event = unseen.get(k.key)
+                decisions.append(Decision(k.key, k.key, Explanation(event["explanation"]) if event
+                                          else Explanation.HIDDEN, 1.0))
+        return decisions
+
+    def object_of(self, decision: Decision) -> Any:
+        return decision.object if decision.object is not None else self.created.pop(decision.key)
+
+
+Decider = Direct | ThroughIngest
+
+
 class Score:
     def __init__(self) -> None:
         self.new = np.zeros((4, 4), dtype=int)
@@ -234,13 +340,14 @@ PREDICTED_OLD = {Explanation.HIDDEN: "persist", Explanation.DISAPPEAR: "disappea
 class Run:
     """One world (one #actions x limit combination) and the belief kept about it."""
 
-    def __init__(self, actions: int, limit: int, noise: float, params: Parameters, seed: int,
+    def __init__(self, actions: int, limit: int, noise: float, decider: Decider, seed: int,
                  jitter: float) -> None:
         self.world = World(np.random.default_rng([seed, actions, limit]), limit)
         self.noise_rng = np.random.default_rng([seed, actions, limit, round(noise * 1e4)])
-        self.actions, self.noise, self.params, self.jitter = actions, noise, params, jitter
-        self.belief: dict[int, Belief] = {}
-        self.next_key = 0
+        self.actions, self.noise, self.decider, self.jitter = actions, noise, decider, jitter
+        self.belief: dict[Any, Belief] = {}
+        self.gone: dict[Any, Belief] = {}  # seen to disappear, still matchable when remembered
+        decider.start_world()
         self.observed = 0
 
     def observe(self, o: int) -> Observation:
@@ -258,17 +365,18 @@ class Run:
         known = [Known(k, self.belief[k].last, inside(region, self.belief[k].last.position))
                  for k in keys]
         start = time.perf_counter()
-        decisions = resolve(new, known, self.params)
+        decisions = self.decider.decide(new, known, region)
         elapsed = time.perf_counter() - start
 
-        by_truth = {b.truth: k for k, b in self.belief.items() if b.truth is not None}
+        remembered = {**self.gone, **self.belief} if self.decider.remembers_gone else self.belief
+        by_truth = {b.truth: k for k, b in remembered.items() if b.truth is not None}
         expected: dict[int, tuple[int | None, str]] = {}  # new index -> (object, explanation)
         for i, o in enumerate(seen):
             k = by_truth.get(o)
             if k is None:
                 expected[i] = (None, "appear")
                 continue
-            b = self.belief[k]
+            b = remembered[k]
             moved = not np.array_equal(b.true_place, self.world.place[o])
             changed = not np.array_equal(b.true_colour, self.world.colour[o])
             if moved and changed:
@@ -315,21 +423,22 @@ class Run:
         n = len(new)
         updated: set[int] = set()
         for d, o, observation in zip(decisions[:n], seen, new, strict=True):
-            if d.object is None:
-                key, self.next_key = self.next_key, self.next_key + 1
+            key = self.decider.object_of(d)
+            if key in self.gone:  # brought back
+                self.belief[key] = self.gone.pop(key)
+            if key not in self.belief:
                 self.belief[key] = Belief(observation, o)
-            else:
-                key = d.object
-                self.belief[key].last = observation
-                self.belief[key].truth = o
+            self.belief[key].last = observation
+            self.belief[key].truth = o
             self.belief[key].true_place = self.world.place[o].copy()
             self.belief[key].true_colour = self.world.colour[o].copy()
             updated.add(key)
         for d in decisions[n:]:
             if d.explanation == Explanation.DISAPPEAR:
-                del self.belief[d.object]
+                self.gone[d.object] = self.belief.pop(d.object)
         now_seen = set(seen)
-        for key, b in self.belief.items():  # one belief object per real object at most
+        # one belief object per real object at most
+        for key, b in {**self.gone, **self.belief}.items():
             if key not in updated and b.truth in now_seen:
                 b.truth = None
 
@@ -341,17 +450,18 @@ class Run:
             self.look(int(self.world.rng.integers(TABLES)), score)
 
 
-def evaluate(noise: float, params: Parameters, scenes: int, seed: int,
+def evaluate(noise: float, decider: Decider, scenes: int, seed: int,
              jitter: float = VIEW_JITTER, progress=None) -> Score:
     """`scenes` scored scenes at one noise level, spread over all #actions x limit worlds."""
     combinations = [(a, lim) for a in ACTIONS for lim in LIMITS]
     per, extra = divmod(scenes, len(combinations))
     total = Score()
+    decider.start_level()  # one sensor per noise level: its calibration is learnt across worlds
     task = progress.add_task(f"sigma {noise}", total=scenes) if progress else None
     for index, (a, lim) in enumerate(combinations):
         count = per + (index < extra)
         if count:
-            Run(a, lim, noise, params, seed, jitter).steps(count, total)
+            Run(a, lim, noise, decider, seed, jitter).steps(count, total)
         if progress:
             progress.advance(task, count)
     return total
@@ -437,6 +547,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--levels", type=float, nargs="+", default=list(LEVELS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--view-jitter", type=float, default=VIEW_JITTER)
+    parser.add_argument("--direct", action="store_true",
+                        help="only the decision core, without the store (fast; for tuning)")
     add_parameter_options(parser)
     args = parser.parse_args(argv)
     params = parameters(args)
@@ -445,19 +557,27 @@ def main(argv: list[str] | None = None) -> int:
     levels: dict[str, Any] = {}
     timings: list[tuple[int, float]] = []
     started = time.perf_counter()
-    with Progress(console=console, transient=True) as progress:
-        for noise in args.levels:
-            score = evaluate(noise, params, args.scenes_per_level, args.seed, args.view_jitter,
-                             progress)
-            levels[str(noise)] = report(noise, score)
-            timings += score.timings
+    settings = Settings(db=f"pmem_bench_identity_{secrets.token_hex(4)}")
+    store = None if args.direct else MemoryStore.open(settings)
+    decider = Direct(params) if store is None else ThroughIngest(params, store)
+    try:
+        with Progress(console=console, transient=True) as progress:
+            for noise in args.levels:
+                score = evaluate(noise, decider, args.scenes_per_level, args.seed,
+                                 args.view_jitter, progress)
+                levels[str(noise)] = report(noise, score)
+                timings += score.timings
+    finally:
+        if store is not None:
+            store.client.drop_database(settings.db)
+            store.close()
     lowest = levels[str(min(args.levels))]["old_clusters"]["diagonal"]
     result = {
         "protocol": {"tables": TABLES, "objects": OBJECTS, "actions": list(ACTIONS),
                      "object_limits": list(LIMITS), "scenes_per_level": args.scenes_per_level,
                      "seed": args.seed, "view_jitter_m": args.view_jitter,
                      "min_move_m": MIN_MOVE, "similarity_sigma": SIGMA,
-                     "decision_core": "percept_memory.memory.identity.resolve (direct)"},
+                     "decided_by": decider.name},
         "parameters": {f.name: getattr(params, f.name) for f in fields(Parameters)},
         "levels": levels,
         "targets_at_lowest_noise": {
@@ -465,6 +585,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, target in TARGETS.items()},
         "better_than_thesis_at_every_level": all(
             all(level.get("better_than_thesis", {}).values()) for level in levels.values()),
+        # per scene: the decision alone (--direct), else storing and consolidating it
         "time_per_scene_vs_objects": timing(timings),
         "time_scaling_beyond_protocol": scaling(params),
         "seconds": round(time.perf_counter() - started, 1),

@@ -1,9 +1,10 @@
 """Tune identity.Parameters on the thesis' synthetic protocol (bench/identity.py); prints JSON.
 
 A random search (log-uniform in RANGES) and then a coordinate search from the best found
-(each parameter times STEPS factors, a few rounds) over prior_move, prior_newview,
-prior_appear, prior_gone and evidence_floor; proximity sigma fixed at the thesis' 0.25.
-A parameter set is scored at sigma 0.025 and 0.05 (800 scenes each, well under a second): the
+(each parameter times STEPS factors, a few rounds) over the odds of the explanations and the
+confidence that teaches the calibration; proximity sigma fixed at the thesis' 0.25.
+A parameter set is scored on the decision core alone (bench/identity.py --direct) at the
+given noise levels (800 scenes each, about a second): the
 mean over both levels of the association accuracy and of the diagonals (recall per truth) of
 the new- and old-cluster confusion matrices, minus a penalty for every point the lowest level
 falls short of a target (bench/identity.py TARGETS).
@@ -31,13 +32,9 @@ import identity as bench  # noqa: E402  (bench/identity.py, not percept_memory's
 RANGES = {  # log-uniform ranges of the random search
     "prior_move": (0.02, 3.0),
     "prior_newview": (0.05, 5.0),
-    "prior_appear": (0.005, 1.0),
-    "prior_gone": (0.005, 1.0),
-    "evidence_floor": (0.001, 0.3),
-    "look_threshold": (0.1, 0.9),
-    "look_sharpness": (1.0, 40.0),
-    "place_threshold": (0.1, 0.9),
-    "place_sharpness": (1.0, 40.0),
+    "prior_appear": (0.05, 5.0),
+    "prior_gone": (0.05, 5.0),
+    "confident": (0.5, 0.99),
 }
 STEPS = (0.5, 0.7, 0.85, 1.2, 1.4, 2.0)  # the coordinate search's factors
 LEVELS = (0.025, 0.05)
@@ -50,7 +47,7 @@ def objective(params: bench.Parameters, scenes: int, seed: int,
     values, detail = [], {}
     shortfall = 0.0
     for noise in levels:
-        result = bench.report(noise, bench.evaluate(noise, params, scenes, seed))
+        result = bench.report(noise, bench.evaluate(noise, bench.Direct(params), scenes, seed))
         new = result["new_clusters"]["diagonal"]
         old = result["old_clusters"]["diagonal"]
         values.append(np.mean([result["association_accuracy"], *new.values(), *old.values()]))

@@ -10,8 +10,16 @@ from pymongo import MongoClient
 from percept_memory.ingest import kitchen_week
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.consolidation import Consolidator
+from percept_memory.memory.identity import Calibration
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
-from percept_memory.memory.types import Cluster, Location, Scene, SemanticColor, Shape
+from percept_memory.memory.types import (
+    Cluster,
+    Location,
+    Scene,
+    SemanticColor,
+    Shape,
+    SpatialVolume,
+)
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +90,38 @@ def test_out_of_view_is_hidden_and_a_place_seen_empty_is_disappeared(empty_store
     history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
     assert history == ["appear", "hidden", "disappear"]
     assert store.db.objects.find_one({"_id": mug_id})["state"] == "disappeared"
+
+
+def test_a_declared_view_region_decides_what_was_in_view(empty_store):
+    """A scene without a camera may say what its sensor covered: objects believed inside it
+    and not seen disappeared, those outside are hidden."""
+    store = empty_store
+    consolidator = Consolidator(store)
+
+    def thing(x: float, colour: str) -> Cluster:
+        return Cluster(annotations=[Location(position=(x, 0.0, 0.8)),
+                                    SemanticColor(ratios={colour: 1.0}), Shape(shape="box")])
+
+    def looking_at(x0: float, x1: float) -> SpatialVolume:
+        return SpatialVolume(box_min=(x0, -1.0, 0.0), box_max=(x1, 1.0, 2.0))
+
+    near, far = thing(0.2, "red"), thing(2.2, "green")
+    base = 4_000_000_000_000_000_000
+    scenes = [Scene(timestamp=base, robot="probe", clusters=[near, far],
+                    view_region=looking_at(0.0, 3.0)),
+              Scene(timestamp=base + 1, robot="probe", view_region=looking_at(0.0, 1.0))]
+    for scene in scenes:
+        store.put_scene(scene)
+        consolidator.consolidate(scene)
+    state = {c.id: store.db.objects.find_one({"_id": store.get_cluster(c.id).object_id})["state"]
+             for c in (near, far)}
+    assert state == {near.id: "disappeared", far.id: "hidden"}
+
+
+def test_the_learnt_calibration_is_kept_with_the_belief(store, consolidated):
+    """A new consolidator (another process, a restart) goes on with what was learnt."""
+    assert Consolidator(store).calibration == consolidated.calibration
+    assert consolidated.calibration != Calibration.prior(consolidated.params)
 
 
 def test_reconsolidation_is_deterministic(store, consolidated):

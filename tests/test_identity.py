@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 from percept_memory.memory.identity import (
+    Calibration,
     Explanation,
     Known,
     Observation,
     Parameters,
+    appearance,
     resolve,
 )
 from percept_memory.memory.types import (
@@ -162,3 +164,37 @@ def test_decisions_are_globally_consistent(seed):
             assert d.explanation == APPEAR
         elif not in_view[d.object]:
             assert d.explanation == MOVE  # formula 6: out of view, only a move
+
+
+def test_the_calibration_learns_what_similar_means_for_the_sensors():
+    """Colour histograms of different objects are rather alike by the Bhattacharyya
+    coefficient (about 0.75): the prior, made for similarities that fall to 0 for different
+    objects, takes two of them for one. After some scenes of objects that stayed, the model
+    has learnt both distributions: the same object seen again still counts as the same, two
+    different ones no longer do. The calibration survives a round trip through its document."""
+    rng = np.random.default_rng(7)
+    looks = [rng.dirichlet(np.ones(16)) for _ in range(4)]
+    places = [(0.3 * k, 0.0) for k in range(4)]
+
+    def seen(k: int, scene: int) -> Observation:
+        noisy = np.clip(looks[k] + rng.normal(0, 0.01, 16), 0, None)
+        x, y = places[k] + rng.normal(0, 0.005, 2)
+        return obs(f"{scene}-{k}", x, y, [ColorHistogram(histogram=noisy / noisy.sum())])
+
+    def similarity(a: int, b: int) -> float:
+        return appearance(seen(a, 0).evidence, seen(b, 0).evidence, DEFAULTS.evidence_floor)
+
+    same = float(np.median([similarity(k, k) for k in range(4) for _ in range(25)]))
+    different = float(np.median([similarity(a, b) for a in range(4) for b in range(a)]))
+    calibration = Calibration.prior(DEFAULTS)
+    assert calibration.look.odds(different) > 1
+
+    belief = [Known(k, seen(k, 0), in_view=True) for k in range(4)]
+    for scene in range(1, 40):
+        now = [seen(k, scene) for k in range(4)]
+        resolve(now, belief, DEFAULTS, calibration)
+        belief = [Known(k, o, in_view=True) for k, o in enumerate(now)]
+
+    assert calibration.look.odds(same) > 3
+    assert calibration.look.odds(different) < 0.05
+    assert Calibration.from_document(calibration.to_document()) == calibration

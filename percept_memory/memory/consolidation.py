@@ -8,6 +8,8 @@ what became of the objects not seen (thesis 3.2.5 and 6.2; the decision is ident
     {_id, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move, newview,
      appear, hidden, disappear), probability, alternatives [{object_id, explanation,
      probability}], position, region}
+`calibration` holds what the identity model learnt about how alike and how near two
+observations of one object are (identity.Calibration), kept with the belief it shaped.
 Names come from the words annotators gave the object, weighted by how much each annotation
 type names rather than describes it (thesis 5.4.5: word statistics), so "the ketchup" finds
 the object a Heinz logo and a "ketchup" classification were seen on.
@@ -23,8 +25,16 @@ from pymongo import UpdateOne
 
 from percept_memory.converters import escape_key, unescape_key
 
-from .identity import Decision, Explanation, Known, Observation, Parameters, resolve
-from .schema import EVENTS, OBJECTS
+from .identity import (
+    Calibration,
+    Decision,
+    Explanation,
+    Known,
+    Observation,
+    Parameters,
+    resolve,
+)
+from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Annotation, Cluster, Scene
 from .view import View
@@ -47,6 +57,10 @@ class Consolidator:
         self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
+        self.calibrations = store.db[CALIBRATION]
+        stored = self.calibrations.find_one({"_id": CALIBRATION})
+        self.calibration = (Calibration.from_document(stored["cues"]) if stored
+                            else Calibration.prior(self.params))
 
     def __call__(self, scenes: Sequence[Scene]) -> None:
         for scene in sorted(scenes, key=lambda s: s.timestamp):
@@ -60,7 +74,7 @@ class Consolidator:
                  for o, seen in believed if o["last_cluster"] in last]
         believed = [o for o, _ in believed]
         new = [_observation(cluster) for cluster in scene.clusters]
-        decisions = resolve(new, known, self.params)
+        decisions = resolve(new, known, self.params, self.calibration)
         by_id = {o["_id"]: o for o in believed}
         clusters = {c.id: c for c in scene.clusters}
         objects, events, links = [], [], []
@@ -83,6 +97,9 @@ class Consolidator:
                 self.events.insert_many(events, session=session)
             if links:
                 self.store.clusters.bulk_write(links, session=session)
+            self.calibrations.replace_one(
+                {"_id": CALIBRATION}, {"cues": self.calibration.to_document()}, upsert=True,
+                session=session)
 
         self.store._transaction(work)
         return decisions
@@ -121,6 +138,8 @@ class Consolidator:
         (after a parameter change): deterministic for the same store and parameters."""
         self.objects.delete_many({})
         self.events.delete_many({})
+        self.calibrations.delete_many({})
+        self.calibration = Calibration.prior(self.params)
         self.store.clusters.update_many({}, {"$set": {"object_id": None}})
         count = 0
         for doc in self.store.scenes.find({}, {"_id": 1}).sort([("timestamp", 1), ("_id", 1)]):

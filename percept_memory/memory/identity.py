@@ -11,8 +11,12 @@ globally consistent (no object claimed twice) and runs in milliseconds:
 - evidence: appearance similarity `s` from the annotation types both observations share
   (each type's `similarity`, combined by their geometric mean, thesis 6.1.2) and proximity
   `p = g(distance)` with the thesis' g(x) = exp(-(x / 2 sigma)^2) (eq. 6.1);
-- the likelihood of each explanation: stay ~ s p, move ~ s (1 - p) prior_move,
-  newview ~ (1 - s) p prior_newview; an object out of view can only have moved (formula 6);
+- each cue enters as a likelihood ratio: how much likelier its value is for one object seen
+  twice than for two different objects. Both distributions are learnt from the decisions as
+  they are made (`Calibration`), so the model follows the real noise of the sensors, where
+  the thesis learnt MLN weights offline from labelled data (6.2.3);
+- the likelihood of each explanation: stay ~ look place, move ~ look prior_move,
+  newview ~ place prior_newview; an object out of view can only have moved (formula 6);
 - "appear" and "unmatched" are options with their own likelihoods, so the assignment may
   prefer them to a poor match;
 - for every new cluster the normalised likelihoods of all its alternatives are kept, so the
@@ -49,23 +53,29 @@ class Parameters:
     """The model's knobs; the defaults come from bench/identity.py (thesis protocol)."""
 
     # m: 2-3x the noise of a position (robot localisation + segmentation, about 2 cm in the
-    # kitchen); the thesis' synthetic tables (noise up to 10 cm) used 0.25
+    # kitchen); the thesis' synthetic tables (noise up to 10 cm) used 0.25. Only a unit: how
+    # near counts as "the same place" is learnt (Calibration).
     proximity_sigma: float = 0.05
-    # The rest tuned on the thesis' synthetic protocol (bench/tune_identity.py, noise 0.025 and
-    # 0.05, seed 1; bench/identity.py scores seed 0).
-    prior_move: float = 0.049  # odds that an object moved between two looks at it
-    prior_newview: float = 0.31  # odds that the same place shows another side of it
-    prior_appear: float = 1.33  # odds of "a new object" against a known one
-    prior_gone: float = 0.79  # odds of "an object in view is not there any more"
-    unknown_similarity: float = 0.5  # when two observations share no comparable evidence
-    look_threshold: float = 0.70  # appearance similarity at which "same look" is even odds
-    look_sharpness: float = 16.3
-    place_threshold: float = 0.76  # proximity at which "same place" is even odds
-    place_sharpness: float = 7.76
+    # Odds of the explanations, tuned on the thesis' synthetic protocol (bench/tune_identity.py,
+    # seed 1; bench/identity.py scores seed 0).
+    prior_move: float = 0.0336  # odds that an object moved between two looks at it
+    prior_newview: float = 0.2118  # odds that the same place shows another side of it
+    prior_appear: float = 3.6868  # odds of "a new object" against a known one
+    prior_gone: float = 1.771  # odds of "an object in view is not there any more"
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
     evidence_floor: float = 0.056
+    # What the calibration believes before it has seen anything: the typical similarity and
+    # proximity of two observations of one object, and of two different objects, each worth
+    # `prior_weight` observations; it then follows the last `memory` observations.
+    look_same: float = 0.9
+    look_different: float = 0.2
+    place_same: float = 0.9
+    place_different: float = 0.1
+    prior_weight: float = 10.0
+    memory: float = 500.0
+    confident: float = 0.858  # decisions at least this sure teach the calibration
 
 
 @dataclass
@@ -109,9 +119,9 @@ def gaussian(distance: float, sigma: float) -> float:
     return math.exp(-((distance / (2 * sigma)) ** 2))
 
 
-def appearance(a: Sequence, b: Sequence, default: float, floor: float) -> float:
+def appearance(a: Sequence, b: Sequence, floor: float) -> float | None:
     """The geometric mean of the similarities of every evidence type both observations have
-    (thesis 6.1.2), each at least `floor`; `default` when they share no comparable type."""
+    (thesis 6.1.2), each at least `floor`; None when they share no comparable type."""
     by_type: dict[type, list] = {}
     for item in b:
         by_type.setdefault(type(item), []).append(item)
@@ -124,25 +134,120 @@ def appearance(a: Sequence, b: Sequence, default: float, floor: float) -> float:
         if values:
             scores.append(min(max(float(max(values)), floor), 1.0))
     if not scores:
-        return default
+        return None
     return float(np.exp(np.mean(np.log(scores))))
 
 
-def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float:
+def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
     if a is None or b is None:
-        return 0.5
+        return None
     return gaussian(float(np.linalg.norm(np.subtract(a, b))), sigma)
 
 
-def explanations(similarity: float, near: float, in_view: bool, params: Parameters) -> dict:
+# --- calibration: how alike is "the same", learnt from the observations ---------------------
+
+U_MIN = 1e-4  # -log similarity below this is "identical" (noise-free data)
+LOG_ODDS_LIMIT = 12.0  # no single cue is surer than e^12 : 1
+
+
+def surprise(similarity: float) -> float:
+    """-log similarity: 0 for identical, growing with distance (the squared distance over
+    4 sigma^2 for the Gaussian similarities of eq. 6.1)."""
+    return max(-math.log(max(similarity, 1e-300)), U_MIN)
+
+
+@dataclass
+class Spread:
+    """The distribution of the surprise of one kind of pair, as a Gamma distribution (the
+    squared distance under Gaussian noise is chi-squared, a Gamma) fitted by its running,
+    slowly forgetting mean and variance."""
+
+    weight: float
+    mean: float
+    variance: float
+
+    @classmethod
+    def around(cls, similarity: float, weight: float, shape: float) -> Spread:
+        mean = surprise(similarity)
+        return cls(weight, mean, mean * mean / shape)
+
+    def learn(self, u: float, memory: float) -> None:
+        self.weight = min(self.weight + 1.0, memory)
+        delta = u - self.mean
+        self.mean += delta / self.weight
+        self.variance += (delta * (u - self.mean) - self.variance) / self.weight
+
+    def gamma(self) -> tuple[float, float]:
+        """Shape and scale, by the method of moments."""
+        variance = max(self.variance, (self.mean * 0.05) ** 2, 1e-12)
+        shape = min(max(self.mean * self.mean / variance, 0.3), 50.0)
+        return shape, self.mean / shape
+
+    def log_density(self, u: float) -> float:
+        shape, scale = self.gamma()
+        return ((shape - 1) * math.log(u) - u / scale - shape * math.log(scale)
+                - math.lgamma(shape))
+
+
+@dataclass
+class Cue:
+    """One kind of evidence (looks alike, is at the same place) as a likelihood ratio: how
+    much likelier its value is for one object seen twice than for two different objects. Both
+    distributions are learnt from the decisions, so the model follows the actual noise of the
+    sensors instead of a fixed threshold (the thesis learnt its weights offline, 6.2.3)."""
+
+    same: Spread
+    different: Spread
+
+    def odds(self, similarity: float | None) -> float:
+        if similarity is None:  # nothing to compare: no evidence either way
+            return 1.0
+        u = max(surprise(similarity), self._peak())
+        log_odds = self.same.log_density(u) - self.different.log_density(u)
+        return math.exp(min(max(log_odds, -LOG_ODDS_LIMIT), LOG_ODDS_LIMIT))
+
+    def _peak(self) -> float:
+        """Where the ratio of the two Gammas peaks: nearer than that is no less "the same"
+        (the ratio of two Gammas falls again towards 0 when the same-object one has the larger
+        shape: an artefact, not evidence)."""
+        (a_s, t_s), (a_d, t_d) = self.same.gamma(), self.different.gamma()
+        rate = 1 / t_s - 1 / t_d
+        return max((a_s - a_d) / rate, U_MIN) if rate > 0 and a_s > a_d else U_MIN
+
+
+@dataclass
+class Calibration:
+    """What the model has learnt about its sensors; kept across scenes (and stored)."""
+
+    look: Cue
+    place: Cue
+
+    @classmethod
+    def prior(cls, params: Parameters) -> Calibration:
+        def cue(same: float, different: float) -> Cue:
+            # one object seen twice: a chi-squared-like spread from 0; two objects: rarely
+            # anywhere near identical
+            return Cue(Spread.around(same, params.prior_weight, shape=1.5),
+                       Spread.around(different, params.prior_weight, shape=4.0))
+
+        return cls(look=cue(params.look_same, params.look_different),
+                   place=cue(params.place_same, params.place_different))
+
+    def to_document(self) -> dict:
+        return {name: {side: vars(getattr(getattr(self, name), side)).copy()
+                       for side in ("same", "different")} for name in ("look", "place")}
+
+    @classmethod
+    def from_document(cls, doc: dict) -> Calibration:
+        return cls(**{name: Cue(Spread(**doc[name]["same"]), Spread(**doc[name]["different"]))
+                      for name in ("look", "place")})
+
+
+def explanations(look: float, place: float, in_view: bool, params: Parameters) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
-    being another object: each piece of evidence as calibrated odds, exp(k (x - threshold)),
-    so "looks the same" and "is at the same place" are judged against thresholds tuned on
-    data rather than taken at face value."""
-    look = math.exp(params.look_sharpness * (similarity - params.look_threshold))
+    being another object, from the odds of "looks the same" and "is at the same place"."""
     if not in_view:  # its old place is not seen now: it can only have been moved here
         return {Explanation.MOVE: look * params.prior_move}
-    place = math.exp(params.place_sharpness * (near - params.place_threshold))
     return {
         Explanation.STAY: look * place,
         Explanation.MOVE: look * params.prior_move,
@@ -151,20 +256,25 @@ def explanations(similarity: float, near: float, in_view: bool, params: Paramete
 
 
 def resolve(new: Sequence[Observation], known: Sequence[Known],
-            params: Parameters | None = None) -> list[Decision]:
+            params: Parameters | None = None,
+            calibration: Calibration | None = None) -> list[Decision]:
     """One joint decision for a scene: a Decision per new observation (in order), then one
-    per known object left unmatched (hidden or disappear)."""
+    per known object left unmatched (hidden or disappear). A `calibration` kept by the caller
+    learns from the confident decisions; without one, the prior calibration is used."""
     params = params or Parameters()
+    calibration = calibration or Calibration.prior(params)
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
+    cues: dict[tuple[int, int], tuple[float | None, float | None]] = {}
     for i, observation in enumerate(new):
         row = []
         for j, candidate in enumerate(known):
-            s = appearance(observation.evidence, candidate.last.evidence,
-                           params.unknown_similarity, params.evidence_floor)
+            s = appearance(observation.evidence, candidate.last.evidence, params.evidence_floor)
             p = proximity(observation.position, candidate.last.position, params.proximity_sigma)
-            ways = explanations(s, p, candidate.in_view, params)
+            cues[i, j] = s, p
+            ways = explanations(calibration.look.odds(s), calibration.place.odds(p),
+                                candidate.in_view, params)
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
@@ -191,7 +301,32 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
+    _learn(calibration, decisions[:len(new)], assigned, cues, len(known), params)
     return decisions
+
+
+def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
+           cues: dict, known: int, params: Parameters) -> None:
+    """Teach the calibration with the confident decisions: a stay shows how alike and how
+    near one object seen twice is (each cue confirmed by the other), and every other pairing
+    of a confidently explained observation shows two different objects."""
+    memory = params.memory
+    for i, decision in enumerate(decisions):
+        for j in range(known):
+            look, place = cues[i, j]
+            if assigned.get(i) == j:
+                if decision.explanation is Explanation.STAY:
+                    if look is not None:
+                        calibration.look.same.learn(surprise(look), memory)
+                    if place is not None:
+                        calibration.place.same.learn(surprise(place), memory)
+                continue
+            if decision.probability < params.confident:
+                continue
+            if look is not None:
+                calibration.look.different.learn(surprise(look), memory)
+            if place is not None:
+                calibration.place.different.learn(surprise(place), memory)
 
 
 def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[int, int]:

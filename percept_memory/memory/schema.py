@@ -14,6 +14,7 @@ SCENES = "scenes"
 CLUSTERS = "clusters"
 OBJECTS = "objects"
 EVENTS = "events"
+CALIBRATION = "calibration"  # what identity resolution learnt about the sensors
 JOBS = "jobs"
 LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"

@@ -1,5 +1,6 @@
-"""What the camera of a scene could see: a point is in view when it projects into the image in
-front of the camera and within the sensor's range (thesis 6.2.1, outOfView)."""
+"""What the camera of a scene could see: a point is in view when it lies in the scene's declared
+view region, or else projects into the image in front of the camera and within the sensor's
+range (thesis 6.2.1, outOfView)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ class View:
     """The view of one scene's camera, prepared once for testing many points."""
 
     def __init__(self, scene: Scene, max_range: float = MAX_RANGE):
+        self.region = scene.view_region
         self.known = scene.camera_pose is not None and scene.camera is not None
         if self.known:
             self.to_camera = np.linalg.inv(scene.camera_pose.matrix())
@@ -22,7 +24,11 @@ class View:
 
     def sees(self, point: Vec3 | None) -> bool | None:
         """True or False, or None when the scene does not say where its camera looked."""
-        if point is None or not self.known:
+        if point is None:
+            return None
+        if self.region is not None:
+            return self.region.contains(point)
+        if not self.known:
             return None
         x, y, z = (self.to_camera @ np.array([*point, 1.0]))[:3]
         if not 0.05 < z <= self.max_range:

@@ -75,3 +75,9 @@ class SpatialVolume(Hypothesis):
         if box and any(lo > hi for lo, hi in zip(self.box_min, self.box_max, strict=True)):
             raise ValueError("box_min must not exceed box_max")
         return self
+
+    def contains(self, point: Vec3) -> bool:
+        if self.center is not None:
+            return math.dist(point, self.center) <= self.radius
+        return all(lo <= x <= hi for lo, x, hi in zip(self.box_min, point, self.box_max,
+                                                      strict=True))

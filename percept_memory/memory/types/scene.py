@@ -7,7 +7,7 @@ from typing import TypeVar
 
 from .annotations import Annotation, Location, LogLine, Relation
 from .base import Id, Identifiable, Timestamp, polymorphic, stored_type
-from .hypotheses import Hypothesis
+from .hypotheses import Hypothesis, SpatialVolume
 from .raw import CameraInfo, Image, PointCloud, Transform, Vec3
 
 A = TypeVar("A", bound=Annotation)
@@ -56,6 +56,8 @@ class Scene(Identifiable):
     frame: str = "map"
     camera_pose: Transform | None = None  # the camera in `frame`
     camera: CameraInfo | None = None
+    # What the sensor saw, when the scene says so (in `frame`); else the camera's frustum
+    view_region: SpatialVolume | None = None
     transforms: list[Transform] = []
     images: dict[str, Image] = {}
     clouds: dict[str, PointCloud] = {}

@@ -22,6 +22,7 @@ from collections.abc import Sequence
 
 from bson import ObjectId
 from pymongo import UpdateOne
+from pymongo.cursor import Cursor
 
 from percept_memory.converters import escape_key, unescape_key
 
@@ -120,18 +121,23 @@ class Consolidator:
         others, disappeared ones included (they may have been moved or brought back here).
         Older unseen objects still persist; they are just not matched now, which keeps a
         scene's cost independent of how many objects the memory holds."""
-        in_sight, unseen = [], []
+        in_sight = []
         view = View(scene)
-        for doc in self.objects.find({"state": {"$ne": "disappeared"}}):
-            if view.sees(_vec(doc.get("position"))):
-                in_sight.append((doc, True))
-            else:
-                unseen.append((doc, False))
-        gone = self.objects.find({"state": "disappeared"}).sort("last_seen", -1)
-        unseen += [(doc, False) for doc in gone.limit(self.max_unseen_candidates)]
-        unseen.sort(key=lambda candidate: candidate[0]["last_seen"], reverse=True)
-        del unseen[self.max_unseen_candidates:]
+        bounds = view.bounds()
+        if bounds is not None:
+            for doc in self.objects_near(bounds):
+                if view.sees(_vec(doc.get("position"))):
+                    in_sight.append((doc, True))
+        seen = {doc["_id"] for doc, _ in in_sight}
+        recent = self.objects.find({"_id": {"$nin": list(seen)}}).sort("last_seen", -1)
+        unseen = [(doc, False) for doc in recent.limit(self.max_unseen_candidates)]
         return in_sight + unseen
+
+    def objects_near(self, bounds) -> Cursor:
+        """The objects believed present or hidden whose x, y lie in a box ((x0, y0), (x1, y1)),
+        by the index on their place."""
+        query = {"state": {"$ne": "disappeared"}, "xy": {"$geoWithin": {"$box": bounds}}}
+        return self.objects.find(query).hint("xy_state")
 
     def rebuild(self, progress=None) -> int:
         """Forget the belief state and consolidate every stored scene again in time order
@@ -193,6 +199,7 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
                 "state": "present", "last_seen": scene.timestamp, "last_scene": scene.id,
                 "last_cluster": cluster.id, "robot": scene.robot,
                 "position": list(cluster.position) if cluster.position else None,
+                "xy": list(cluster.position[:2]) if cluster.position else None,
                 "region": cluster.region, "names": names, "name": names[0] if names else None,
                 "label_weights": {escape_key(k): v for k, v in weights.items()},
             },

@@ -6,7 +6,7 @@ import types
 import typing
 from typing import Any
 
-from pymongo import ASCENDING, DESCENDING, IndexModel
+from pymongo import ASCENDING, DESCENDING, GEO2D, IndexModel
 
 from percept_memory.converters import aliases_of, class_for, foreign_codec_names, name_of
 
@@ -20,6 +20,8 @@ LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
+
+PLACE_LIMIT_M = 100_000.0  # the extent of a map: positions within +-100 km of its origin
 
 INDEXES: dict[str, list[IndexModel]] = {
     SCENES: [
@@ -41,6 +43,10 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("state", ASCENDING), ("last_seen", DESCENDING)], name="state_seen"),
         IndexModel([("names", ASCENDING)], name="names"),
         IndexModel([("region", ASCENDING), ("state", ASCENDING)], name="region_state"),
+        IndexModel([("last_seen", DESCENDING)], name="seen"),
+        # x, y of the position in metres: the objects a view may contain, by a box query
+        IndexModel([("xy", GEO2D), ("state", ASCENDING)], name="xy_state",
+                   min=-PLACE_LIMIT_M, max=PLACE_LIMIT_M),
     ],
     EVENTS: [
         IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),

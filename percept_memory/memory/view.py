@@ -18,9 +18,25 @@ class View:
         self.region = scene.view_region
         self.known = scene.camera_pose is not None and scene.camera is not None
         if self.known:
-            self.to_camera = np.linalg.inv(scene.camera_pose.matrix())
+            self.camera_pose = scene.camera_pose.matrix()
+            self.to_camera = np.linalg.inv(self.camera_pose)
             self.camera = scene.camera
         self.max_range = max_range
+
+    def bounds(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """A box on the ground plane (x, y) around everything the view can see, for an index
+        to find the objects worth testing; None when the scene does not say where it looked."""
+        region = self.region
+        if region is not None and region.center is not None:
+            (x, y, _), r = region.center, region.radius
+            return (x - r, y - r), (x + r, y + r)
+        if region is not None:
+            return tuple(region.box_min[:2]), tuple(region.box_max[:2])
+        if not self.known:
+            return None
+        x, y = self.camera_pose[:2, 3]
+        r = self.max_range
+        return (float(x - r), float(y - r)), (float(x + r), float(y + r))
 
     def sees(self, point: Vec3 | None) -> bool | None:
         """True or False, or None when the scene does not say where its camera looked."""

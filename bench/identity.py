@@ -27,13 +27,15 @@ The protocol, as in the thesis:
 
 Ground truth. A belief object stands for the real object of its last observation. For a new
 observation of object t: if no belief object stands for t, the truth is "appear" (matched to
-nothing): first put, or brought back after its removal was seen (belief forgot it). Otherwise
-it is that belief object b, and the explanation compares the truth now with the truth when b
-was last observed: same place and look -> stay, other place -> move, other look -> newview;
-both moved and changed look (possible through unseen steps) is indistinguishable from a new
-object and counts as appear (and b then as persist / disappear). A belief object not observed
-is "persist" when its believed place is out of view (whether or not the object is still there:
-nothing could tell), "disappear" when in view. Association accuracy: the decision's object is
+nothing): its first put. Otherwise it is that belief object b (also when b was seen to
+disappear: the memory keeps such objects as candidates, out of view, so one brought back can
+be recognised, as the Consolidator does), and the explanation compares the truth now with
+the truth when b was last observed: same place and look -> stay, other place -> move, other
+look -> newview; both moved and changed look (possible through unseen steps) is
+indistinguishable from a new object and counts as appear (and b then as persist /
+disappear). A belief object not observed (and not seen to disappear before) is "persist" when
+its believed place is out of view (whether or not the object is still there: nothing could
+tell), "disappear" when in view. Association accuracy: the decision's object is
 the true one (None for appear). Confusion matrices (percent of each truth row): new clusters
 (stay, move, newview, appear) like figure 6.6, old clusters (newview, move, persist,
 disappear, stay) like figure 6.7, whose numbers are included for comparison (its caption says
@@ -224,7 +226,6 @@ class Belief:
 class Direct:
     """The decision core alone (identity.resolve); the benchmark keeps the belief state."""
 
-    remembers_gone = False
     name = "percept_memory.memory.identity.resolve (direct)"
 
     def __init__(self, params: Parameters) -> None:
@@ -250,10 +251,8 @@ class Direct:
 class ThroughIngest:
     """Every look is a Scene given to the real ingest service: stored, then consolidated into
     `objects` and `events` (memory/consolidation.py), with the view as the scene's declared
-    view region; the decisions are read back from the events. The database remembers objects
-    seen to disappear, so one brought back may be recognised as itself."""
+    view region; the decisions are read back from the events."""
 
-    remembers_gone = True
     name = "percept_memory.ingest.IngestService -> memory.consolidation.Consolidator"
 
     def __init__(self, params: Parameters, store: MemoryStore) -> None:
@@ -346,7 +345,7 @@ class Run:
         self.noise_rng = np.random.default_rng([seed, actions, limit, round(noise * 1e4)])
         self.actions, self.noise, self.decider, self.jitter = actions, noise, decider, jitter
         self.belief: dict[Any, Belief] = {}
-        self.gone: dict[Any, Belief] = {}  # seen to disappear, still matchable when remembered
+        self.gone: dict[Any, Belief] = {}  # seen to disappear, may be brought back
         decider.start_world()
         self.observed = 0
 
@@ -361,14 +360,15 @@ class Run:
         region = self.world.view(table, self.jitter)
         seen = sorted(o for o, p in self.world.place.items() if inside(region, p))
         new = [self.observe(o) for o in seen]
-        keys = list(self.belief)
-        known = [Known(k, self.belief[k].last, inside(region, self.belief[k].last.position))
-                 for k in keys]
+        known = [Known(k, b.last, inside(region, b.last.position))
+                 for k, b in self.belief.items()]
+        # as in the Consolidator, objects seen to disappear remain candidates, out of view
+        candidates = known + [Known(k, b.last, False) for k, b in self.gone.items()]
         start = time.perf_counter()
-        decisions = self.decider.decide(new, known, region)
+        decisions = self.decider.decide(new, candidates, region)
         elapsed = time.perf_counter() - start
 
-        remembered = {**self.gone, **self.belief} if self.decider.remembers_gone else self.belief
+        remembered = {**self.gone, **self.belief}
         by_truth = {b.truth: k for k, b in remembered.items() if b.truth is not None}
         expected: dict[int, tuple[int | None, str]] = {}  # new index -> (object, explanation)
         for i, o in enumerate(seen):
@@ -396,7 +396,7 @@ class Run:
         truth_of_old = {k.key: ("disappear" if k.in_view else "persist") for k in known}
         for i in range(n):
             obj, explanation = expected[i]
-            if obj is not None:
+            if obj in truth_of_old:  # (not one remembered as gone, brought back)
                 truth_of_old[obj] = explanation
         predicted_old = {k.key: None for k in known}
         for i, d in enumerate(decisions[:n]):

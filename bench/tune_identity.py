@@ -10,7 +10,7 @@ the new- and old-cluster confusion matrices, minus a penalty for every point the
 falls short of a target (bench/identity.py TARGETS).
 
 Usage: python bench/tune_identity.py [--scenes-per-level 800] [--rounds 4] [--samples 200]
-       [--seed 1]
+       [--seed 1] [--levels 0.025 0.05] [--shortfall-weight 0.5]
 (tune on another seed than the benchmark's 0, so the benchmark tests the tuned values.)
 """
 
@@ -41,7 +41,7 @@ LEVELS = (0.025, 0.05)
 
 
 def objective(params: bench.Parameters, scenes: int, seed: int,
-              levels: tuple[float, ...] = LEVELS) -> tuple[float, dict]:
+              levels: tuple[float, ...] = LEVELS, weight: float = 0.5) -> tuple[float, dict]:
     """Mean accuracy over the levels, less the shortfall from the issue's targets at the
     lowest noise and from the thesis' figure 6.7 at every level."""
     values, detail = [], {}
@@ -58,7 +58,7 @@ def objective(params: bench.Parameters, scenes: int, seed: int,
         shortfall += sum(max(0.0, thesis[name] - old[name]) for name in thesis)
         detail[str(noise)] = {"association": result["association_accuracy"],
                               "new": new, "old": old}
-    return float(np.mean(values)) - 0.5 * shortfall, detail
+    return float(np.mean(values)) - weight * shortfall, detail
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--samples", type=int, default=200, help="random search samples")
+    parser.add_argument("--shortfall-weight", type=float, default=0.5,
+                        help="points of objective lost per point short of a target or the thesis")
     parser.add_argument("--levels", type=float, nargs="+", default=list(LEVELS),
                         help="noise levels to tune on")
     args = parser.parse_args(argv)
@@ -77,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     levels = tuple(args.levels)
 
     def score_of(params: bench.Parameters) -> tuple[float, dict]:
-        return objective(params, args.scenes_per_level, args.seed, levels)
+        return objective(params, args.scenes_per_level, args.seed, levels, args.shortfall_weight)
 
     best_value, best_detail = score_of(best)
     start_value = best_value

@@ -37,6 +37,9 @@ def compiled(f: ClusterFilter) -> Plan[tuple[dict, dict | None]]:
 
 
 def find_clusters(query: ClusterQuery) -> Plan[ClusterPage]:
+    """Clusters (observations) matching text, regions, robots, objects, a box, a sphere, a
+    time range and annotation field predicates: a page, newest first (or oldest first, or by
+    relevance to the text), with the cursor of the next page; or the k nearest to a point."""
     match, expansions = yield from compiled(query)
     if query.near is not None:
         return ClusterPage(items=(yield from nearest(match, query.near, query.k)))

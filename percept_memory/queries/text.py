@@ -92,7 +92,8 @@ def score_expression(expansions: Expansions, terms_field: str) -> dict:
     return {"$add": per_word} if per_word else {"$literal": 0}
 
 
-def word_score(expansions: Expansions, have: set[str]) -> float:
-    """The same score, in Python, for a set of words (an object's names)."""
-    return sum(max((q for term, q in terms.items() if term in have), default=0.0)
+def word_score(expansions: Expansions, have: dict[str, float]) -> float:
+    """The same score, in Python, for words that each count for a weight in [0, 1] (an
+    object's names count for how much they name it)."""
+    return sum(max((q * have[term] for term, q in terms.items() if term in have), default=0.0)
                for terms in expansions.values())

@@ -49,7 +49,13 @@ def squared_distance(point, position: str) -> dict:
     deltas = [{"$subtract": [{"$arrayElemAt": [f"${position}", axis]}, float(point[axis])]}
               for axis in range(3)]
     squares = [{"$multiply": [d, d]} for d in deltas]
-    return {"$add": [{"$add": squares[:2]}, squares[2]]}
+    return _plus(_plus(squares[0], squares[1]), squares[2])
+
+
+def _plus(a: dict, b: dict) -> dict:
+    """a + b as a - (-b): $add sums doubles with extra precision, $subtract rounds each
+    step as IEEE 754 (and Python) does, so server and client agree to the last bit."""
+    return {"$subtract": [a, {"$multiply": [b, -1.0]}]}
 
 
 def squared_distance_py(point, position) -> float:

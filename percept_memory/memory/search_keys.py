@@ -38,7 +38,8 @@ def trigrams(word: str) -> list[str]:
 
 # --- cells --------------------------------------------------------------------------------
 
-CELL_SIZES = tuple(0.25 * 4**level for level in range(7))  # 0.25 m ... 1024 m
+CELL_SIZES = tuple(0.0625 * 4**level for level in range(8))  # 6.25 cm ... 1024 m: exact
+# powers of two, so a position's cell (floor of position / size) involves no rounding
 EVERYWHERE = "*"  # the one cell of every positioned cluster: the k-nearest search's last resort
 
 

@@ -20,7 +20,7 @@ from .results import ClusterHit, ClusterPage
 from .space import shells, squared_distance
 from .text import TextQuery, expand, score_expression
 
-RANK_WINDOW = 1000  # relevance ranks the most recent this many text matches
+RANK_WINDOW = 300  # relevance ranks the most recent this many text matches
 HIT_FIELDS = {"scene_id": 1, "object_id": 1, **{f"search.{key}": 1 for key in (
     "time", "robot", "region", "position", "labels", "text", "types")}}
 

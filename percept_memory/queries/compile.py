@@ -66,7 +66,7 @@ def predicate_clauses(f: ClusterFilter) -> list[dict]:
     lookups = []
     for p in f.where:
         by_type[p.type][p.field][p.operator] = p.value
-        if p.operator != "$ne":
+        if p.operator != "$ne" and p.value is not None:  # null and missing are not keyed
             lookups.append({"search.fields": {"$elemMatch": {"k": p.key,
                                                              "v": {p.operator: p.value}}}})
     exact = [{"annotations": {"$elemMatch": {"_type": type_name, **fields}}}

@@ -187,7 +187,7 @@ class Predicate(Strict):
         if match is None:
             raise ValueError(f"expected type:field<op>value, such as "
                              f"classification:confidence>0.8, got {value!r}")
-        return {**match.groupdict(), "value": _scalar_text(match["value"])}
+        return {**match.groupdict(), "value": _TextValue(match["value"])}
 
     @model_validator(mode="after")
     def _resolved(self) -> Predicate:
@@ -213,10 +213,6 @@ class Predicate(Strict):
 
 class _TextValue(str):
     """A predicate value written as text (query string, CLI): its type is still to decide."""
-
-
-def _scalar_text(text: str) -> Any:
-    return _TextValue(text)
 
 
 def _resolve_field(type_name: str, parts: list[str], value: Any) -> tuple[str, Scalar]:

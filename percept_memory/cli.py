@@ -15,7 +15,7 @@ from typing import Any
 
 import click
 import uvicorn
-from pydantic import ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -28,6 +28,8 @@ from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
 from percept_memory.memory.settings import Settings, settings_help
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
+from percept_memory.queries.engine import QUERIES, QueryEngine
+from percept_memory.queries.params import from_params, is_list
 from percept_memory.webui.app import create_app
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
@@ -305,3 +307,45 @@ def reconsolidate(settings: Settings) -> None:
         objects = store.db["objects"].count_documents({})
         events = store.db["events"].count_documents({})
     click.echo(f"reconsolidated {count} scenes: {objects} objects, {events} events")
+
+
+# --- pmem query: the query API on the command line -------------------------------------------
+
+
+@main.group()
+def query() -> None:
+    """Ask the memory: clusters (text, space, time, annotation fields), where-is, where-was,
+    last-seen, what-is-at, changes, stats. Prints the answer as JSON; options are those of
+    the HTTP API's query string (see /docs)."""
+
+
+def _query_command(name: str, model: type[BaseModel]) -> click.Command:
+    """A subcommand whose options are the query model's fields (its required first field an
+    argument), read by the same parser as the HTTP query string."""
+    params: list[click.Parameter] = []
+    for field, info in model.model_fields.items():
+        if info.is_required():
+            params.append(click.Argument([field]))
+        elif info.annotation is bool:
+            params.append(click.Option([f"--{field.replace('_', '-')}"], is_flag=True,
+                                       default=None, help=info.description))
+        else:
+            params.append(click.Option([f"--{field.replace('_', '-')}", field],
+                                       multiple=is_list(model, field), help=info.description))
+
+    @click.pass_obj
+    def run(settings: Settings, **given: Any) -> None:
+        pairs = [(field, str(value).lower() if isinstance(value, bool) else str(value))
+                 for field, values in given.items() if values is not None
+                 for value in (values if isinstance(values, tuple) else (values,))]
+        question = from_params(model, pairs)
+        with MemoryStore.open(settings) as store:
+            answer = getattr(QueryEngine(store, settings), name)(question)
+        click.echo(json.dumps(TypeAdapter(Any).dump_python(answer, mode="json"), indent=2))
+
+    return click.Command(name.replace("_", "-"), callback=run, params=params,
+                         help=(QUERIES[name][1].__doc__ or "").strip().split("\n\n")[0])
+
+
+for _name, (_model, _plan) in QUERIES.items():
+    query.add_command(_query_command(_name, _model))

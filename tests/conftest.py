@@ -65,3 +65,19 @@ def kitchen_rgb() -> np.ndarray:
     """The real 640x480 kitchen counter frame of RoboSherlock's samples (BGR, uint8)."""
     (path,) = (ROBOSHERLOCK / "samples" / "kitchen").glob("rgb_*.png")
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+
+
+@pytest.fixture(scope="module")
+def kitchen(store):
+    """The generated kitchen week ingested with consolidation into the module's store, and the
+    ground truth of every stored cluster: cluster id -> the catalogue object it shows."""
+    from percept_memory.ingest import kitchen_week
+    from percept_memory.ingest.service import IngestService
+    from percept_memory.memory.consolidation import Consolidator
+
+    week = kitchen_week.generate()
+    items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
+    list(IngestService(store, after_store=[Consolidator(store)]).ingest_stream(items))
+    truth_of = {cluster.id: week.truth.object_at(i, j)
+                for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
+    return week, truth_of

@@ -31,7 +31,7 @@ from .errors import (
 )
 from .schema import COUNTED_COLLECTIONS, INDEXES, catalogue_entry
 from .settings import Settings
-from .store import CLIENT_OPTIONS, ClusterChange, StoreBase
+from .store import CLIENT_OPTIONS, ClusterChange, StoreBase, vocabulary_upserts
 from .types import Annotation, Cluster, Scene
 
 
@@ -99,7 +99,7 @@ class AsyncMemoryStore(StoreBase):
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
-        await self._catalogue(written.type_names)
+        await self._catalogue(written)
         return prepared.results
 
     async def _stored(self, scenes: Sequence[Scene]) -> dict:
@@ -152,13 +152,13 @@ class AsyncMemoryStore(StoreBase):
                 raise NotFound("cluster", cluster_id)
             changed = change(docs.decode_cluster(doc, await self._blobs([doc], session)))
             if changed is None:
-                return set()
+                return docs.Documents()
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             await self._put_blobs(written.blobs, session)
             await self.clusters.replace_one(
                 {"_id": cluster_id}, written.clusters[0], session=session
             )
-            return written.type_names
+            return written
 
         await self._catalogue(await self._transaction(work))
 
@@ -200,9 +200,12 @@ class AsyncMemoryStore(StoreBase):
         async with self.client.start_session() as session:
             return await session.with_transaction(work)
 
-    async def _catalogue(self, type_names: set[str]) -> None:
-        for name in self._not_yet_catalogued(type_names):
+    async def _catalogue(self, written: docs.Documents) -> None:
+        for name in self._not_yet_catalogued(written.type_names):
             await self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+        for collection, entries in self._new_vocabulary(written).items():
+            await self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False)
+            self._remember_words(collection, entries)
 
     async def catalogue(self) -> list[dict]:
         return await self.types.find().sort("_id").to_list()

@@ -17,7 +17,9 @@ from bson import ObjectId
 
 from percept_memory.converters import DecodeContext, EncodeContext, Unknown, decode, encode
 
+from . import search_keys
 from .errors import NotFound
+from .schema import LABELS, TERMS
 from .types import Annotation, Cluster, ImageROI, Scene, datetime_from_timestamp
 
 SEARCH_KEY = "search"  # derived query fields, recomputed on every write
@@ -45,6 +47,8 @@ class Documents:
     clusters: list[dict] = field(default_factory=list)
     blobs: dict[str, bytes] = field(default_factory=dict)
     type_names: set[str] = field(default_factory=set)
+    terms: set[str] = field(default_factory=set)  # the vocabulary the clusters use
+    labels: set[str] = field(default_factory=set)
 
     def encode(self, value: Scene | Cluster, threshold: int) -> dict:
         """The document of one object. Each document lists the blobs it refers to itself,
@@ -151,7 +155,10 @@ def _cluster_document(
     cluster: Cluster, timestamp: int, robot: str, threshold: int, out: Documents
 ) -> dict:
     doc = out.encode(cluster, threshold)
-    doc[SEARCH_KEY] = search_fields(cluster, timestamp, robot)
+    doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot)
+    search["fields"] = search_keys.field_entries(doc.get("annotations", ()))
+    out.terms.update(search["terms"])
+    out.labels.update(search["labels"])
     return doc
 
 
@@ -211,18 +218,31 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     roi = cluster.hypothesis_of(ImageROI)
     labels = {label.strip().casefold() for a in annotations for label in a.labels() if label}
     texts = [text for a in annotations for text in a.texts() if text]
+    position = cluster.position
     return {
         "time": timestamp,
         "robot": robot,
         "region": cluster.region,
-        "position": list(cluster.position) if cluster.position else None,
+        "position": list(position) if position else None,
+        "cells": search_keys.cells_of(position),
         "labels": sorted(labels),
         "text": texts,
+        "terms": sorted({w for t in (*labels, *texts) for w in search_keys.words(t)}),
         "phash": roi.phash if roi else None,
         "types": sorted(
             {a.type_name for a in annotations}
             | {a.type_name for a in cluster.annotations if isinstance(a, Unknown)}
         ),
+    }
+
+
+def vocabulary_documents(written: Documents) -> dict[str, list[dict]]:
+    """The `terms` (with trigrams, to find misspelt words' neighbours) and `labels` (with
+    their words, to find objects by any word of a name) that written clusters use."""
+    return {
+        TERMS: [{"_id": t, "grams": search_keys.trigrams(t)} for t in sorted(written.terms)],
+        LABELS: [{"_id": label, "words": sorted(set(search_keys.words(label)))}
+                   for label in sorted(written.labels)],
     }
 
 

@@ -18,10 +18,19 @@ CALIBRATION = "calibration"  # what identity resolution learnt about the sensors
 JOBS = "jobs"
 LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"
+TERMS = "terms"  # the words clusters use, with their trigrams (misspelling-tolerant search)
+LABELS = "labels"  # the labels clusters carry, with their words (objects by any word of a name)
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
 
 PLACE_LIMIT_M = 100_000.0  # the extent of a map: positions within +-100 km of its origin
+
+
+def _newest(*keys: str, name: str) -> IndexModel:
+    """An index on `keys` then newest first: (time, _id) descending."""
+    return IndexModel([*((key, ASCENDING) for key in keys), ("search.time", DESCENDING),
+                       ("_id", DESCENDING)], name=name)
+
 
 INDEXES: dict[str, list[IndexModel]] = {
     SCENES: [
@@ -29,16 +38,24 @@ INDEXES: dict[str, list[IndexModel]] = {
                    name="robot_time_unique"),
         IndexModel([("timestamp", DESCENDING)], name="time"),
     ],
+    # Each query path of queries/ has an index ending in (time, _id): results come newest
+    # first, and a cursor resumes after the last (time, _id) seen, without sorting in memory.
     CLUSTERS: [
         IndexModel([("scene_id", ASCENDING)], name="scene"),
-        IndexModel([("object_id", ASCENDING), ("search.time", DESCENDING)], name="object_time"),
-        IndexModel([("search.time", DESCENDING)], name="time"),
-        IndexModel([("search.region", ASCENDING), ("search.time", DESCENDING)],
-                   name="region_time"),
+        _newest("object_id", name="object_newest"),
+        _newest(name="newest"),
+        _newest("search.region", name="region_newest"),
+        _newest("search.robot", name="robot_newest"),
+        _newest("search.terms", name="terms_newest"),
+        _newest("search.cells", name="cells_newest"),
+        _newest("search.types", name="types_newest"),
+        IndexModel([("search.fields.k", ASCENDING), ("search.fields.v", ASCENDING)],
+                   name="fields"),
         IndexModel([("search.labels", ASCENDING)], name="labels"),
-        IndexModel([("search.types", ASCENDING)], name="types"),
         IndexModel([("search.phash", ASCENDING)], name="phash", sparse=True),
     ],
+    TERMS: [IndexModel([("grams", ASCENDING)], name="grams")],
+    LABELS: [IndexModel([("words", ASCENDING)], name="words")],
     OBJECTS: [
         IndexModel([("state", ASCENDING), ("last_seen", DESCENDING)], name="state_seen"),
         IndexModel([("names", ASCENDING)], name="names"),
@@ -58,7 +75,8 @@ INDEXES: dict[str, list[IndexModel]] = {
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],
 }
 
-COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, JOBS, LOOKUP_CACHE, TYPES, GRIDFS_FILES)
+COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, JOBS, LOOKUP_CACHE, TYPES, TERMS, LABELS,
+                       GRIDFS_FILES)
 
 
 def type_string(annotation: Any) -> str:

@@ -52,6 +52,10 @@ class Settings(BaseSettings):
         default=64, gt=0,
         description="PMEM_MAX_REQUEST_MB: largest HTTP request body accepted (413 above)",
     )
+    query_timeout_ms: int = Field(
+        default=2000, ge=1,
+        description="PMEM_QUERY_TIMEOUT_MS: server-side time limit of each query operation",
+    )
 
 
 def settings_help() -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 from bson import ObjectId
-from pymongo import MongoClient
+from pymongo import MongoClient, UpdateOne
 from pymongo.errors import (
     BulkWriteError,
     DocumentTooLarge,
@@ -51,6 +51,11 @@ CLIENT_OPTIONS = {"tz_aware": True, "appname": "percept-memory"}
 ClusterChange = Callable[[Cluster], Cluster | None]
 
 
+def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
+    """Idempotent writes of vocabulary entries: a word is inserted once and never changed."""
+    return [UpdateOne({"_id": e["_id"]}, {"$setOnInsert": e}, upsert=True) for e in entries]
+
+
 class StoreBase:
     """What the sync and async stores share: collections, settings, the catalogue memo."""
 
@@ -64,11 +69,23 @@ class StoreBase:
         self.chunks = self.db[GRIDFS_CHUNKS]
         self.gridfs_threshold = gridfs_threshold
         self._catalogued: set[str] = set()
+        self._known_words: set[tuple[str, str]] = set()
 
     def _not_yet_catalogued(self, type_names: set[str]) -> list[str]:
         new = sorted(type_names - self._catalogued)
         self._catalogued.update(new)
         return new
+
+    def _new_vocabulary(self, written: docs.Documents) -> dict[str, list[dict]]:
+        """The terms and labels of a write that this process has not written before."""
+        new = {}
+        for collection, entries in docs.vocabulary_documents(written).items():
+            if fresh := [e for e in entries if (collection, e["_id"]) not in self._known_words]:
+                new[collection] = fresh
+        return new
+
+    def _remember_words(self, collection: str, entries: list[dict]) -> None:
+        self._known_words.update((collection, e["_id"]) for e in entries)
 
     @staticmethod
     def _duplicate(error: Exception) -> DuplicateId:
@@ -151,7 +168,7 @@ class MemoryStore(StoreBase):
             if not too_large(error):
                 raise
             raise TooLarge(self.gridfs_threshold) from error
-        self._catalogue(written.type_names)
+        self._catalogue(written)
         return prepared.results
 
     def _stored(self, scenes: Sequence[Scene]) -> dict:
@@ -214,11 +231,11 @@ class MemoryStore(StoreBase):
                 raise NotFound("cluster", cluster_id)
             changed = change(docs.decode_cluster(doc, self._blobs([doc], session)))
             if changed is None:
-                return set()
+                return docs.Documents()
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
-            return written.type_names
+            return written
 
         self._catalogue(self._transaction(work))
 
@@ -261,10 +278,14 @@ class MemoryStore(StoreBase):
         with self.client.start_session() as session:
             return session.with_transaction(work)
 
-    def _catalogue(self, type_names: set[str]) -> None:
-        """Record the stored types in `types`, once per type per process."""
-        for name in self._not_yet_catalogued(type_names):
+    def _catalogue(self, written: docs.Documents) -> None:
+        """Record the stored types in `types` and the words in `terms` and `labels`, once
+        per process."""
+        for name in self._not_yet_catalogued(written.type_names):
             self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+        for collection, entries in self._new_vocabulary(written).items():
+            self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False)
+            self._remember_words(collection, entries)
 
     # --- the store as a whole -----------------------------------------------------------
 

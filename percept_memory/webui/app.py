@@ -24,6 +24,9 @@ from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
+from percept_memory.queries.engine import QueryEngine
+
+from .queries import query_router
 
 
 class ApiError(Exception):
@@ -101,6 +104,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             for r in results
         ]}
 
+    app.include_router(query_router(QueryEngine(store, settings)))
     return app
 
 

@@ -1,0 +1,122 @@
+"""The index keys derived from what a cluster says, so every kind of query has an index to use.
+
+- words: the terms of labels and texts (`search.terms`), and the trigrams that find a
+  misspelt word's neighbours in the vocabulary;
+- cells: 3D voxel keys at several sizes (`search.cells`). MongoDB's geo indexes are 2D
+  only, so a box, a sphere or the k nearest are found as the cells around them, then filtered
+  exactly by position;
+- fields: every scalar field of every annotation as a {k: "type:path", v: value} pair
+  (`search.fields`, the attribute pattern), so a predicate on any field of any type, known to
+  this version or not, has index bounds.
+Pure functions; documents.py writes their results, queries/ computes the same keys to look up.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable, Iterator, Mapping
+
+from percept_memory.converters import escape_key
+
+# --- words --------------------------------------------------------------------------------
+
+_WORD = re.compile(r"[^\W_]+")
+
+
+def words(text: str) -> list[str]:
+    """The terms of a text, casefolded, in order: "Kellogg's Corn-Flakes" -> kellogg, s, corn,
+    flakes. Letters and digits only, so a term is never query syntax."""
+    return _WORD.findall(text.casefold())
+
+
+def trigrams(word: str) -> list[str]:
+    """The trigrams of a word padded with a space each side: " pr", "pri", ..., "es "."""
+    padded = f" {word} "
+    return sorted({padded[i:i + 3] for i in range(len(padded) - 2)})
+
+
+# --- cells --------------------------------------------------------------------------------
+
+CELL_SIZES = tuple(0.0625 * 4**level for level in range(8))  # 6.25 cm ... 1024 m: exact
+# powers of two, so a position's cell (floor of position / size) involves no rounding
+EVERYWHERE = "*"  # the one cell of every positioned cluster: the k-nearest search's last resort
+
+
+def cell(level: int, index: tuple[int, int, int]) -> str:
+    return f"{level}:{index[0]}:{index[1]}:{index[2]}"
+
+
+def cell_index(level: int, point: Iterable[float]) -> tuple[int, int, int]:
+    size = CELL_SIZES[level]
+    x, y, z = (math.floor(v / size) for v in point)
+    return x, y, z
+
+
+def cells_of(position: Iterable[float] | None) -> list[str]:
+    """The cell keys of a position, one per level, plus EVERYWHERE; none without a position."""
+    if position is None:
+        return []
+    point = tuple(position)
+    return [cell(level, cell_index(level, point)) for level in range(len(CELL_SIZES))] + [
+        EVERYWHERE
+    ]
+
+
+def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) -> list[str]:
+    """The cells of the finest level whose cells over the box [low, high] number at most
+    `max_cells` (every point of the box lies in one of them)."""
+    low, high = tuple(low), tuple(high)
+    for level in range(len(CELL_SIZES)):
+        first, last = cell_index(level, low), cell_index(level, high)
+        spans = [b - a + 1 for a, b in zip(first, last, strict=True)]
+        if math.prod(spans) <= max_cells:
+            return [cell(level, (x, y, z))
+                    for x in range(first[0], last[0] + 1)
+                    for y in range(first[1], last[1] + 1)
+                    for z in range(first[2], last[2] + 1)]
+    return [EVERYWHERE]
+
+
+# --- fields -------------------------------------------------------------------------------
+
+SCALARS = (str, bool, int, float)
+FIELD_DEPTH = 2  # `confidences.cereal`, `properties.perishable`; deeper values are not keyed
+
+
+def field_key(type_name: str, path: str) -> str:
+    return f"{type_name}:{path}"
+
+
+def field_entries(annotations: Iterable[Mapping]) -> list[dict]:
+    """{k, v} for every scalar field of every annotation document (any type, `_id` and
+    `_type` aside), nested mappings down to FIELD_DEPTH; lists and typed values (arrays,
+    images, poses) are left out. Duplicates are dropped."""
+    seen: set = set()
+    out = []
+    for annotation in annotations:
+        name = annotation.get("_type")
+        if not isinstance(name, str):
+            continue
+        for path, value in _scalars(annotation, "", 1):
+            key = (path, type(value).__name__, value)
+            if key not in seen:
+                seen.add(key)
+                out.append({"k": field_key(name, path), "v": value})
+    return out
+
+
+def _scalars(doc: Mapping, prefix: str, depth: int) -> Iterator[tuple[str, object]]:
+    for key, value in doc.items():
+        if key in ("_id", "_type"):
+            continue
+        path = f"{prefix}{key}"
+        if isinstance(value, SCALARS) and not (isinstance(value, float) and math.isnan(value)):
+            yield path, value
+        elif isinstance(value, Mapping) and "_type" not in value and depth < FIELD_DEPTH:
+            yield from _scalars(value, f"{path}.", depth + 1)
+
+
+def field_path(first: str, rest: Iterable[str]) -> str:
+    """The stored path of a field: the field's own name, then escaped mapping keys."""
+    return ".".join([first, *(escape_key(part) for part in rest)])

@@ -1,0 +1,145 @@
+"""A cluster filter compiled to a MongoDB filter, and the cursors that resume a sorted page.
+
+The one place where query values meet MongoDB syntax. Operators and field names here are
+ours; user values (validated by model.py into strings, numbers, ids and times) only ever sit
+in value positions, where MongoDB never reads them as operators, and in aggregation
+expressions only inside $literal. Each condition is one an index answers (see schema.py):
+regions, robots, objects, time, terms, cells, field entries; what an index cannot decide
+exactly (a phrase, a sphere, several fields of one annotation) is checked on the candidates.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import json
+from collections import defaultdict
+
+from bson import ObjectId
+
+from .model import ClusterFilter, ClusterQuery
+from .ops import QueryError
+from .space import cells_of_volume, inside
+from .text import Expansions, TextQuery, all_terms, phrase_pattern
+
+POSITION = "search.position"
+
+
+def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
+                   expansions: Expansions | None = None) -> dict:
+    clauses: list[dict] = []
+    for values, field in ((f.region, "search.region"), (f.robot, "search.robot"),
+                          (f.object, "object_id")):
+        if values:
+            clauses.append({field: {"$in": list(values)}})
+    if window := time_window(f.after, f.before, f.at):
+        clauses.append({"search.time": window})
+    for volume in (f.box, f.sphere):
+        if volume is not None:
+            clauses += [{"search.cells": {"$in": cells_of_volume(volume)}},
+                        inside(volume, POSITION)]
+    if text is not None:
+        clauses.append({"search.terms": {"$in": all_terms(expansions or {})}})
+        for phrase in text.phrases:
+            pattern = {"$regex": phrase_pattern(phrase), "$options": "i"}
+            clauses.append({"$or": [{"search.text": pattern}, {"search.labels": pattern}]})
+    clauses += predicate_clauses(f)
+    return conjunction(clauses)
+
+
+def time_window(after: int | None, before: int | None, at: int | None = None) -> dict:
+    if at is not None:
+        return {"$eq": at}
+    window = {}
+    if after is not None:
+        window["$gte"] = after
+    if before is not None:
+        window["$lte"] = before
+    return window
+
+
+def predicate_clauses(f: ClusterFilter) -> list[dict]:
+    """Per annotation type, one $elemMatch over the annotations (all its predicates hold on
+    the same annotation), and per comparable predicate a lookup in the field-entry index."""
+    by_type: dict[str, dict[str, dict]] = defaultdict(lambda: defaultdict(dict))
+    lookups = []
+    for p in f.where:
+        by_type[p.type][p.field][p.operator] = p.value
+        if p.operator != "$ne" and p.value is not None:  # null and missing are not keyed
+            lookups.append({"search.fields": {"$elemMatch": {"k": p.key,
+                                                             "v": {p.operator: p.value}}}})
+    exact = [{"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
+             for type_name, fields in by_type.items()]
+    return lookups + exact
+
+
+def conjunction(clauses: list[dict]) -> dict:
+    clauses = [c for c in clauses if c]
+    return {} if not clauses else clauses[0] if len(clauses) == 1 else {"$and": clauses}
+
+
+# --- cursors --------------------------------------------------------------------------------
+
+SORT_KEYS = {"newest": ("search.time", "_id"), "oldest": ("search.time", "_id"),
+             "relevance": ("score", "search.time", "_id")}
+
+
+def sort_spec(sort: str) -> tuple[tuple[str, int], ...]:
+    direction = 1 if sort == "oldest" else -1
+    return tuple((key, direction) for key in SORT_KEYS[sort])
+
+
+def fingerprint(query: ClusterQuery) -> str:
+    """What a cursor is bound to: the query's filter and order (not its page size)."""
+    described = json.dumps([query.filter_part().model_dump(mode="json"), query.sort],
+                           sort_keys=True)
+    return hashlib.sha256(described.encode()).hexdigest()[:16]
+
+
+def encode_cursor(query: ClusterQuery, last: dict) -> str:
+    values = [_get(last, key) for key in SORT_KEYS[query.sort]]
+    values[-1] = str(values[-1])
+    data = json.dumps({"q": fingerprint(query), "v": values}, separators=(",", ":"))
+    return base64.urlsafe_b64encode(data.encode()).decode().rstrip("=")
+
+
+def resume_after(query: ClusterQuery) -> dict:
+    """The condition for the rows after the cursor's, in the query's order."""
+    if query.cursor is None:
+        return {}
+    values = _decoded(query)
+    keys = SORT_KEYS[query.sort]
+    op = "$gt" if query.sort == "oldest" else "$lt"
+    branches = []
+    for i, key in enumerate(keys):
+        branch = {k: values[j] for j, k in enumerate(keys[:i])}
+        branch[key] = {op: values[i]}
+        branches.append(branch)
+    return {"$or": branches}
+
+
+def _decoded(query: ClusterQuery) -> list:
+    invalid = QueryError("the cursor is not valid: pass `next` of the previous page unchanged")
+    try:
+        text = query.cursor + "=" * (-len(query.cursor) % 4)
+        data = json.loads(base64.urlsafe_b64decode(text.encode()))
+    except (ValueError, binascii.Error, UnicodeDecodeError):
+        raise invalid from None
+    if not isinstance(data, dict) or data.get("q") != fingerprint(query):
+        raise QueryError("the cursor belongs to another query (filter or sort changed)")
+    values = data.get("v")
+    keys = SORT_KEYS[query.sort]
+    if not isinstance(values, list) or len(values) != len(keys):
+        raise invalid
+    *numbers, last_id = values
+    if not all(isinstance(n, int | float) and not isinstance(n, bool) for n in numbers) or \
+            not (isinstance(last_id, str) and ObjectId.is_valid(last_id)):
+        raise invalid
+    return [*numbers, ObjectId(last_id)]
+
+
+def _get(doc: dict, dotted: str):
+    for part in dotted.split("."):
+        doc = doc[part]
+    return doc

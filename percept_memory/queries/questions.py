@@ -1,0 +1,239 @@
+"""Questions about objects, answered from the belief state: `objects` (what is believed to
+exist, where, in which state) and `events` (per object per scene: appear, stay, move,
+newview, hidden, disappear, with the position and region). Both are written by
+memory/consolidation.py; only the document shapes its docstring gives are relied on here.
+
+The thesis (8.3) answers "where is X" by the most recent matching observation and "where was
+X" by walking tracking annotations back; the belief state lets us answer what the robot
+believes, including objects it cannot see now (hidden), for any moment in the past: the
+belief about an object at time t is its last event at or before t.
+"""
+
+from __future__ import annotations
+
+from bson import ObjectId
+from bson.min_key import MinKey
+
+from percept_memory.converters import unescape_key
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, OBJECTS
+from percept_memory.memory.search_keys import words
+
+from .compile import time_window
+from .model import About, AtTime, Between, History, Place
+from .ops import Aggregate, Find, Plan, QueryError
+from .results import Belief, Changes, Contents, Moved, ObjectAt, Sighting, Stay
+from .results import History as HistoryAnswer
+from .space import inside
+from .text import all_terms, expand, word_score
+
+NOW = 2**63 - 1
+STATE_OF = {"appear": "present", "stay": "present", "move": "present", "newview": "present",
+            "hidden": "hidden", "disappear": "disappeared"}
+STATE_ORDER = {"present": 0, "hidden": 1, "disappeared": 2}
+MAX_LABELS = 500  # labels a text may stand for
+MAX_CANDIDATES = 500  # objects those labels may name
+EVIDENCE = 3  # most recent observations given with a belief
+OBJECT_FIELDS = {"label_weights": 0}
+
+
+# --- which objects a question is about -------------------------------------------------------
+
+
+def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
+    """The objects X stands for, best first, with how well they match: an object id, a
+    cluster id (the object it is believed to be), or text matched against the objects' names
+    (misspellings tolerated); ties go to present objects, then the most recently seen."""
+    if ObjectId.is_valid(x):
+        return [((yield from _by_id(ObjectId(x))), 1.0)]
+    query_words = tuple(dict.fromkeys(words(x)))
+    if not query_words:
+        raise QueryError(f"{x!r} names nothing: give words, an object id or a cluster id")
+    expansions = yield from expand(query_words)
+    labels = yield Find(LABELS, {"words": {"$in": all_terms(expansions)}}, {"_id": 1},
+                        limit=MAX_LABELS)
+    if not labels:
+        return []
+    objects = yield Find(OBJECTS, {"names": {"$in": [doc["_id"] for doc in labels]}},
+                         limit=MAX_CANDIDATES)
+    scored = [(o, word_score(expansions, name_words(o)) / len(query_words)) for o in objects]
+    scored.sort(key=lambda s: (-s[1], STATE_ORDER.get(s[0].get("state"), 3),
+                               -(s[0].get("last_seen") or 0)))
+    return scored[:limit]
+
+
+def name_words(o: dict) -> dict[str, float]:
+    """The words of an object's names, each weighted by how much its name names the object
+    (its share of the label weights against the top name's: thesis 5.4.5, word statistics),
+    so "mug" finds the object called mug before the cup once taken for a mug."""
+    weights = {unescape_key(k): v for k, v in (o.get("label_weights") or {}).items()}
+    top = max(weights.values(), default=0)
+    have: dict[str, float] = {}
+    for name in o.get("names") or []:
+        weight = weights.get(name, 0) / top if top > 0 else 1.0
+        for word in words(name):
+            have[word] = max(have.get(word, 0.0), weight)
+    return have
+
+
+def _by_id(given: ObjectId) -> Plan[dict]:
+    found = yield Find(OBJECTS, {"_id": given}, OBJECT_FIELDS)
+    if not found:
+        cluster = yield Find(CLUSTERS, {"_id": given}, {"object_id": 1})
+        if cluster and cluster[0].get("object_id") is not None:
+            found = yield Find(OBJECTS, {"_id": cluster[0]["object_id"]}, OBJECT_FIELDS)
+    if not found:
+        raise NotFound("object or cluster", given)
+    return found[0]
+
+
+# --- where is, last seen, where was ----------------------------------------------------------
+
+
+def where_is(q: About) -> Plan[list[Belief]]:
+    """What the memory believes about the objects X names now: state (present, hidden,
+    disappeared), position, region, last seen, the confidence of its last explanation and
+    the observations that are the evidence."""
+    found = yield from resolve(q.x, q.limit)
+    last = yield from latest_events({"$in": [o["_id"] for o, _ in found]}, NOW)
+    confidence = {e["object_id"]: e.get("probability") for e in last}
+    out = []
+    for o, match in found:
+        evidence = yield Find(CLUSTERS, {"object_id": o["_id"]}, {"_id": 1},
+                              (("search.time", -1), ("_id", -1)), EVIDENCE)
+        out.append(_belief(o, match, confidence.get(o["_id"]), [c["_id"] for c in evidence]))
+    return out
+
+
+def last_seen(q: About) -> Plan[list[Sighting]]:
+    """When and where the objects X names were last observed, most recent first."""
+    found = yield from resolve(q.x, q.limit)
+    sightings = [Sighting(object_id=o["_id"], name=o.get("name"), time=o["last_seen"],
+                          region=o.get("region"), position=o.get("position"),
+                          cluster_id=o.get("last_cluster"), scene_id=o.get("last_scene"),
+                          robot=o.get("robot"), state=o["state"], match=match)
+                 for o, match in found]
+    return sorted(sightings, key=lambda s: (-s.match, -s.time))
+
+
+def where_was(q: History) -> Plan[list[HistoryAnswer]]:
+    """The places each object X names was at, with the times, oldest first."""
+    found = yield from resolve(q.x, q.limit)
+    window = time_window(q.after, q.before)
+    events = yield Find(EVENTS, {"object_id": {"$in": [o["_id"] for o, _ in found]},
+                                 **({"time": window} if window else {})},
+                        {"object_id": 1, "time": 1, "explanation": 1, "region": 1,
+                         "position": 1}, (("object_id", 1), ("time", -1)))
+    by_object: dict = {}
+    for event in reversed(events):  # oldest first
+        by_object.setdefault(event["object_id"], []).append(event)
+    return [HistoryAnswer(object=_belief(o, match), places=stays(by_object.get(o["_id"], [])))
+            for o, match in found]
+
+
+def stays(events: list[dict]) -> list[Stay]:
+    """Events of one object, oldest first, as the places it was at: an appear or a move
+    starts a stay, stay and newview extend it, hidden marks it unseen (still believed
+    there), disappear or the next move ends it."""
+    out: list[Stay] = []
+    for e in events:
+        kind, t = e["explanation"], e["time"]
+        current = out[-1] if out and out[-1].until is None else None
+        if kind in ("appear", "move") or current is None:
+            if current is not None:
+                current.until, current.ended_by = t, "move"
+            if kind == "disappear":
+                continue
+            current = Stay(region=e.get("region"), position=e.get("position"), since=t,
+                           last_seen=t, observations=int(kind != "hidden"),
+                           hidden_since=t if kind == "hidden" else None)
+            out.append(current)
+        elif kind in ("stay", "newview"):
+            current.last_seen, current.hidden_since = t, None
+            current.observations += 1
+        elif kind == "hidden":
+            current.hidden_since = t
+        elif kind == "disappear":
+            current.until, current.ended_by = t, "disappear"
+    return out
+
+
+def _belief(o: dict, match: float, confidence: float | None = None,
+            evidence: list | None = None) -> Belief:
+    stored = {key: o[key] for key in Belief.model_fields if o.get(key) is not None}
+    return Belief(**{**stored, "object_id": o["_id"], "confidence": confidence,
+                     "evidence": evidence or [], "match": round(match, 3)})
+
+
+# --- what is at a place, what changed there --------------------------------------------------
+
+
+def latest_events(objects: dict | None, t: int, place: Place | None = None) -> Plan[list[dict]]:
+    """The belief about each object at time t (its last event at or before t), of the given
+    objects or of all; with a place, only the objects believed there then (present or
+    hidden). One index seek per object (DISTINCT_SCAN on events' object_time index)."""
+    pipeline: list[dict] = [
+        {"$match": {"object_id": objects or {"$gte": MinKey()}, "time": {"$lte": t}}},
+        {"$sort": {"object_id": 1, "time": -1}},
+        {"$group": {"_id": "$object_id", "event": {"$first": "$$ROOT"}}},
+        {"$replaceWith": "$event"},
+    ]
+    if place is not None:
+        pipeline.append({"$match": {**_at(place), "explanation": {"$ne": "disappear"}}})
+    return (yield Aggregate(EVENTS, pipeline))
+
+
+def _at(place: Place) -> dict:
+    if place.region is not None:
+        return {"region": place.region}
+    return inside(place.box or place.sphere, "position")
+
+
+def what_is_at(q: AtTime) -> Plan[Contents]:
+    """The objects believed at the place at time t (default now), present or hidden."""
+    t = NOW if q.t is None else q.t
+    believed = yield from latest_events(None, t, q)
+    names = yield from names_of([e["object_id"] for e in believed])
+    return Contents(t=t, objects=_objects_at(believed, names))
+
+
+def changes(q: Between) -> Plan[Changes]:
+    """What changed at the place between t1 and t2 (default now): objects that appeared
+    there, that disappeared from there (and where they went), that moved within it. Net
+    changes: an object that came and went in between is not listed."""
+    t2 = NOW if q.t2 is None else q.t2
+    before = {e["object_id"]: e for e in (yield from latest_events(None, q.t1, q))}
+    after = {e["object_id"]: e for e in (yield from latest_events(None, t2, q))}
+    gone = [o for o in before if o not in after]
+    went = {e["object_id"]: e for e in (yield from latest_events({"$in": gone}, t2))}
+    stayed = [o for o in before if o in after]
+    moves = yield Find(EVENTS, {"object_id": {"$in": stayed}, "time": {"$gt": q.t1, "$lte": t2},
+                                "explanation": "move"}, {"object_id": 1})
+    moved = {e["object_id"] for e in moves}
+    names = yield from names_of([*before, *after])
+    appeared = _objects_at([e for o, e in after.items() if o not in before], names)
+
+    def pair(o) -> Moved:
+        was, now = before[o], after.get(o, went.get(o))
+        return Moved(object_id=o, name=names.get(o), before=_object_at(was, names),
+                     after=_object_at(now, names) if now else None)
+
+    return Changes(t1=q.t1, t2=t2, appeared=appeared, disappeared=[pair(o) for o in gone],
+                   moved=[pair(o) for o in stayed if o in moved])
+
+
+def names_of(ids: list) -> Plan[dict]:
+    found = yield Find(OBJECTS, {"_id": {"$in": ids}}, {"name": 1})
+    return {o["_id"]: o.get("name") for o in found}
+
+
+def _objects_at(events: list[dict], names: dict) -> list[ObjectAt]:
+    return sorted((_object_at(e, names) for e in events),
+                  key=lambda o: (o.region or "", o.name or "", str(o.object_id)))
+
+
+def _object_at(e: dict, names: dict) -> ObjectAt:
+    return ObjectAt(object_id=e["object_id"], name=names.get(e["object_id"]),
+                    state=STATE_OF[e["explanation"]], region=e.get("region"),
+                    position=e.get("position"), since=e["time"], explanation=e["explanation"],
+                    cluster_id=e.get("cluster_id"))

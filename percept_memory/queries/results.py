@@ -1,0 +1,171 @@
+"""What queries answer: pydantic models, so the Python API, the HTTP API (its OpenAPI schema)
+and the CLI give the same shapes. Times are int64 nanoseconds since the epoch, UTC."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel
+
+from percept_memory.memory.types import Id
+
+Position = tuple[float, float, float]
+State = Literal["present", "hidden", "disappeared"]
+
+
+class ClusterHit(BaseModel):
+    """One observation found: where and when, what it was called, which object it is."""
+
+    id: Id
+    scene_id: Id | None = None
+    object_id: Id | None = None
+    time: int
+    robot: str
+    region: str | None = None
+    position: Position | None = None
+    labels: list[str] = []
+    text: list[str] = []
+    types: list[str] = []
+    score: float | None = None  # with sort=relevance
+    distance: float | None = None  # with near
+
+    @classmethod
+    def of(cls, doc: dict) -> ClusterHit:
+        search = doc["search"]
+        return cls(id=doc["_id"], scene_id=doc.get("scene_id"), object_id=doc.get("object_id"),
+                   time=search["time"], robot=search["robot"], region=search.get("region"),
+                   position=search.get("position"), labels=search.get("labels", []),
+                   text=search.get("text", []), types=search.get("types", []),
+                   score=doc.get("score"), distance=doc.get("distance"))
+
+
+class ClusterPage(BaseModel):
+    items: list[ClusterHit]
+    next: str | None = None  # the cursor of the next page; None on the last
+    total: int | None = None  # with count=true
+
+
+class Belief(BaseModel):
+    """What the memory believes about one object now (where_is, last_seen)."""
+
+    object_id: Id
+    name: str | None = None
+    names: list[str] = []
+    state: State
+    region: str | None = None
+    position: Position | None = None
+    first_seen: int | None = None
+    last_seen: int | None = None
+    last_cluster: Id | None = None
+    last_scene: Id | None = None
+    robot: str | None = None
+    observations: int = 0
+    confidence: float | None = None  # probability of the explanation of its last event
+    evidence: list[Id] = []  # its most recent observations (cluster ids), newest first
+    match: float = 1.0  # how well it matches the question's text (1: every word exactly)
+
+
+class Sighting(BaseModel):
+    """When and where an object was last observed (last_seen)."""
+
+    object_id: Id
+    name: str | None = None
+    time: int
+    region: str | None = None
+    position: Position | None = None
+    cluster_id: Id | None = None
+    scene_id: Id | None = None
+    robot: str | None = None
+    state: State  # what is believed of it now
+    match: float = 1.0
+
+
+class Stay(BaseModel):
+    """One place an object was at, and when (where_was)."""
+
+    region: str | None = None
+    position: Position | None = None
+    since: int  # when it was first seen there
+    last_seen: int  # when it was last seen there
+    hidden_since: int | None = None  # out of view from then on, still believed there
+    until: int | None = None  # when it was found gone or elsewhere; None: still there
+    ended_by: Literal["move", "disappear"] | None = None
+    observations: int = 0
+
+
+class History(BaseModel):
+    object: Belief
+    places: list[Stay]
+
+
+class ObjectAt(BaseModel):
+    """An object believed at a place at a moment (what_is_at, changes)."""
+
+    object_id: Id
+    name: str | None = None
+    state: State
+    region: str | None = None
+    position: Position | None = None
+    since: int  # time of the event that made it so
+    explanation: str  # that event's explanation: appear, stay, move, newview, hidden, ...
+    cluster_id: Id | None = None  # the last observation of it up to that moment
+
+
+class Contents(BaseModel):
+    t: int
+    objects: list[ObjectAt]
+
+
+class Moved(BaseModel):
+    object_id: Id
+    name: str | None = None
+    before: ObjectAt | None  # where it was at t1 (None: not at the place)
+    after: ObjectAt | None  # where it is at t2 (None: gone from the memory's view)
+
+
+class Changes(BaseModel):
+    t1: int
+    t2: int
+    appeared: list[ObjectAt]  # at the place at t2, not at t1
+    disappeared: list[Moved]  # at the place at t1, not at t2 (`after`: where it went)
+    moved: list[Moved]  # at the place at both times, moved in between
+
+
+class Count(BaseModel):
+    type: str
+    annotator: str | None = None
+    count: int
+
+
+class AnnotationStats(BaseModel):
+    clusters: int
+    by_type: list[Count]
+    by_annotator: list[Count]
+
+
+class Occurrence(BaseModel):
+    object_id: Id | None = None
+    name: str | None = None
+    region: str | None = None
+    hour: int | None = None  # of the day, UTC, with by_hour
+    count: int
+
+
+class CooccurrenceStats(BaseModel):
+    rows: list[Occurrence]  # per object, region (and hour)
+    regions: list[Occurrence]  # summed over the objects: where they usually are
+
+
+class Timing(BaseModel):
+    annotator: str
+    runs: int
+    mean_ms: float | None = None
+    max_ms: float | None = None
+    total_ms: float = 0.0
+    warnings: int = 0
+    errors: int = 0
+
+
+class TimingStats(BaseModel):
+    scenes: int
+    annotators: list[Timing]

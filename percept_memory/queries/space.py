@@ -1,0 +1,93 @@
+"""True 3D conditions, index-backed: the voxel cells around a volume select candidates by
+index (search.cells), the exact box or distance test keeps the right ones. MongoDB's geo
+indexes are 2D only; the thesis (6.6) could not use stored positions at all.
+
+The same conditions serve clusters (`search.position`) and events (`position`), so
+what-is-at a volume and changes in a volume mean exactly what a cluster search means.
+"""
+
+from __future__ import annotations
+
+from percept_memory.memory.search_keys import (
+    CELL_SIZES,
+    EVERYWHERE,
+    cell,
+    cell_index,
+    cells_covering,
+)
+
+from .model import Box, Sphere
+
+MAX_CELLS = 216  # cells one volume may be looked up by (6 x 6 x 6 at the finest level fitting)
+
+
+def cells_of_volume(volume: Box | Sphere) -> list[str]:
+    """The cells covering a box or a sphere's bounding box."""
+    return cells_covering(*corners(volume), MAX_CELLS)
+
+
+def corners(volume: Box | Sphere) -> tuple[tuple, tuple]:
+    if isinstance(volume, Box):
+        return volume.low, volume.high
+    # a sphere's bounding box, a hair wider than exact arithmetic would make it, so that no
+    # point the distance test keeps is lost to rounding (it only narrows candidates)
+    c, r = volume.center, volume.radius
+    margin = [r + 1e-9 * (abs(v) + r) for v in c]
+    return (tuple(v - m for v, m in zip(c, margin, strict=True)),
+            tuple(v + m for v, m in zip(c, margin, strict=True)))
+
+
+def inside_box(box: Box, position: str) -> dict:
+    """The exact test, corners included, on a position field [x, y, z]."""
+    return {f"{position}.{axis}": {"$gte": box.low[axis], "$lte": box.high[axis]}
+            for axis in range(3)}
+
+
+def squared_distance(point, position: str) -> dict:
+    """((dx*dx + dy*dy) + dz*dz) from a position field [x, y, z] to a point: the same
+    arithmetic, in the same order, as `squared_distance_py`."""
+    deltas = [{"$subtract": [{"$arrayElemAt": [f"${position}", axis]}, float(point[axis])]}
+              for axis in range(3)]
+    squares = [{"$multiply": [d, d]} for d in deltas]
+    return _plus(_plus(squares[0], squares[1]), squares[2])
+
+
+def _plus(a: dict, b: dict) -> dict:
+    """a + b as a - (-b): $add sums doubles with extra precision, $subtract rounds each
+    step as IEEE 754 (and Python) does, so server and client agree to the last bit."""
+    return {"$subtract": [a, {"$multiply": [b, -1.0]}]}
+
+
+def squared_distance_py(point, position) -> float:
+    dx, dy, dz = (position[axis] - point[axis] for axis in range(3))
+    return (dx * dx + dy * dy) + dz * dz
+
+
+def inside_sphere(sphere: Sphere, position: str) -> dict:
+    """The exact test: squared distance to the centre at most the squared radius, within the
+    sphere's bounding box (which lets plain range conditions narrow the candidates first)."""
+    low, high = corners(sphere)
+    return {**inside_box(Box(low=low, high=high), position),
+            "$expr": {"$lte": [squared_distance(sphere.center, position),
+                               sphere.radius * sphere.radius]}}
+
+
+def inside(volume: Box | Sphere, position: str) -> dict:
+    return inside_box(volume, position) if isinstance(volume, Box) else inside_sphere(
+        volume, position)
+
+
+def shells(point) -> list[tuple[list[str], float]]:
+    """For the k-nearest search: growing cubes of 3 x 3 x 3 cells around the point, one per
+    level, each with the radius it is sure to cover (the distance from the point to the
+    cube's nearest face); last the cell of everything, which covers any radius."""
+    out = []
+    for level, size in enumerate(CELL_SIZES):
+        centre = cell_index(level, point)
+        keys = [cell(level, (centre[0] + dx, centre[1] + dy, centre[2] + dz))
+                for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
+        covered = min(min(point[a] - (centre[a] - 1) * size, (centre[a] + 2) * size - point[a])
+                      for a in range(3))
+        out.append((keys, covered))
+    out.append(([EVERYWHERE], float("inf")))
+    return out

@@ -1,0 +1,358 @@
+"""The query engine on the kitchen week (ingested with consolidation): answers checked against
+the week's ground truth and against brute force over the stored documents; every query path
+checked with explain to use an index."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import Counter
+
+import pytest
+from pymongo import AsyncMongoClient
+from rapidfuzz.distance import Levenshtein
+
+from percept_memory.converters import Unknown
+from percept_memory.ingest import kitchen_week as kw
+from percept_memory.memory.async_store import AsyncMemoryStore
+from percept_memory.memory.search_keys import words
+from percept_memory.memory.store import CLIENT_OPTIONS
+from percept_memory.memory.types import Cluster, Location, Scene
+from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
+from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.ops import QueryError
+from percept_memory.queries.questions import STATE_OF
+
+HOUR = 3600 * kw.SECOND
+
+
+@pytest.fixture(scope="module")
+def engine(store, kitchen):
+    return QueryEngine(store)
+
+
+def every_page(engine, **query) -> list:
+    items, cursor = [], None
+    while True:
+        page = engine.clusters(**query, cursor=cursor) if cursor else engine.clusters(**query)
+        items += page.items
+        if page.next is None:
+            return items
+        cursor = page.next
+
+
+def stored(store, **condition) -> list[dict]:
+    return list(store.clusters.find(condition))
+
+
+# --- text -----------------------------------------------------------------------------------
+
+
+def test_a_misspelt_word_finds_its_neighbours(engine, store, kitchen):
+    _, truth_of = kitchen
+    hits = every_page(engine, text="Prinles", limit=100)
+    near = {doc["_id"] for doc in stored(store) if any(
+        Levenshtein.distance("prinles", w) <= 2 for w in doc["search"]["terms"])}
+    assert {h.id for h in hits} == near and len(near) > 20
+    assert Counter(truth_of[h.id].partition("#")[0] for h in hits) == {"pringles": len(near)}
+    assert engine.clusters(text="Prinles", count=True).total == len(near)
+
+
+def test_relevance_ranks_clusters_with_more_of_the_words_first(engine):
+    hits = every_page(engine, text="heinz ketchup", limit=40)
+    scores = [h.score for h in hits]
+    assert scores == sorted(scores, reverse=True) and scores[0] == 2.0 and scores[-1] < 2.0
+    assert len({h.id for h in hits}) == len(hits) > 40  # pages on by cursor, nothing twice
+    top = hits[0]
+    assert {"heinz", "ketchup"} <= {w for t in (*top.labels, *top.text) for w in words(t)}
+
+
+def test_a_phrase_must_appear_in_a_row(engine, store, kitchen):
+    _, truth_of = kitchen
+    hits = every_page(engine, text='"tomato ketchup"', sort="newest")
+    expected = {d["_id"] for d in stored(store) if any(
+        "tomato ketchup" in t.casefold() for t in d["search"]["text"] + d["search"]["labels"])}
+    assert {h.id for h in hits} == expected and expected
+    assert {truth_of[h.id] for h in hits} == {"ketchup#1"}
+    assert not every_page(engine, text='"ketchup tomato"')
+
+
+# --- filters, sorting, pages ----------------------------------------------------------------
+
+
+def test_field_predicates_hold_on_one_annotation(engine, store):
+    hits = every_page(engine, where=["classification:class_name=cup",
+                                     "classification:confidence>0.8"], limit=7)
+    expected = [d for d in stored(store) if any(
+        a["_type"] == "pm.annotation.Classification" and a["class_name"] == "cup"
+        and a["confidence"] > 0.8 for a in d["annotations"])]
+    assert len(hits) == len(expected) > 0
+    assert [h.id for h in hits] == [d["_id"] for d in sorted(
+        expected, key=lambda d: (d["search"]["time"], d["_id"]), reverse=True)]
+
+
+def test_predicates_on_mapping_keys_and_on_types_this_version_does_not_know(engine, store):
+    perishable = every_page(engine, where="product:properties.perishable=true")
+    assert perishable and all(
+        any(a.get("properties", {}).get("perishable") is True for a in d["annotations"])
+        for d in store.clusters.find({"_id": {"$in": [h.id for h in perishable]}}))
+    weight = Unknown(type_name="rs.annotation.Weight", fields={"source": "Scale", "grams": 1250})
+    scene = Scene(timestamp=1, robot="scale", clusters=[Cluster(annotations=[weight])])
+    store.put_scene(scene)
+    (hit,) = engine.clusters(where="rs.annotation.Weight:grams>1000").items
+    assert hit.id == scene.clusters[0].id
+    assert not engine.clusters(where="rs.annotation.Weight:grams>2000").items
+
+
+def test_region_robot_and_time_range(engine, store):
+    after, before = kw.START.replace(day=5, hour=6), kw.START.replace(day=5, hour=12)
+    hits = every_page(engine, region=["table", "shelf"], robot="pr2", after=after.isoformat(),
+                      before=before.isoformat(), sort="oldest", limit=9)
+    low, high = (ClusterQuery(after=t).after for t in (after, before))
+    expected = sorted((d["search"]["time"], d["_id"]) for d in stored(store) if
+                       d["search"]["region"] in ("table", "shelf")
+                       and low <= d["search"]["time"] <= high)
+    assert [(h.time, h.id) for h in hits] == expected and expected
+
+
+def test_a_cursor_belongs_to_its_query(engine):
+    page = engine.clusters(region="table", limit=2)
+    with pytest.raises(QueryError, match="another query"):
+        engine.clusters(region="shelf", limit=2, cursor=page.next)
+    with pytest.raises(QueryError, match="not valid"):
+        engine.clusters(region="table", limit=2, cursor=page.next[:-4] + "AAAA")
+
+
+# --- questions, against the ground truth ----------------------------------------------------
+
+
+def test_what_is_at_a_region_right_after_each_look_is_what_was_there(engine, kitchen):
+    """Every scene of the week: the objects believed present on its region at its time are
+    the objects truly there (each identified through the cluster that saw it)."""
+    week, truth_of = kitchen
+    for scene in week.truth.scenes:
+        answer = engine.what_is_at(region=scene.region, t=scene.time)
+        present = [truth_of[o.cluster_id] for o in answer.objects if o.state == "present"]
+        assert sorted(present) == sorted(scene.objects), scene
+
+
+def kind(object_id: str) -> str:
+    return object_id.partition("#")[0]
+
+
+def replayed_belief(store, t: int) -> dict:
+    """The belief at time t by brute force: every event up to t, replayed in order."""
+    belief = {}
+    for event in store.db.events.find({"time": {"$lte": t}}).sort("time"):
+        belief[event["object_id"]] = event
+    return belief
+
+
+def test_what_is_at_any_past_moment_includes_hidden_objects(engine, store, kitchen):
+    week, _ = kitchen
+    hidden_seen = 0
+    for scene in week.truth.scenes[::9]:
+        for region in kw.REGIONS:
+            t = scene.time + 45 * kw.SECOND
+            answer = engine.what_is_at(region=region, t=t)
+            expected = {o: STATE_OF[e["explanation"]] for o, e in replayed_belief(store, t).items()
+                        if e["region"] == region and e["explanation"] != "disappear"}
+            assert {o.object_id: o.state for o in answer.objects} == expected
+            hidden_seen += sum(o.state == "hidden" for o in answer.objects)
+    assert hidden_seen > 50
+
+
+def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
+    week, _ = kitchen
+    t = week.truth.scenes[100].time
+    for name, region in kw.REGIONS.items():
+        box = f"{region.x[0]},{region.y[0]},0,{region.x[1]},{region.y[1]},2"
+        assert engine.what_is_at(box=box, t=t) == engine.what_is_at(region=name, t=t)
+
+
+def test_an_object_out_of_view_is_hidden_there_until_its_place_is_seen_empty(empty_engine):
+    """A mug on the table; the robot looks at the shelf (the mug is hidden on the table),
+    then at the table without it (gone): what-is-at the table at each moment."""
+    store, engine = empty_engine
+    week = kw.generate(days=1)
+    table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
+    shelf = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
+    from percept_memory.memory.consolidation import Consolidator
+    consolidator = Consolidator(store)
+    mug = Cluster(annotations=[Location(region="table", position=table.clusters[0].position)])
+    base = 4_000_000_000_000_000_000
+    for i, (view, clusters) in enumerate([(table, [mug]), (shelf, []), (table, [])]):
+        scene = Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
+                      camera=view.camera, clusters=clusters)
+        store.put_scene(scene)
+        consolidator.consolidate(scene)
+    states = [[o.state for o in engine.what_is_at(region="table", t=base + i).objects]
+              for i in range(-1, 3)]
+    assert states == [[], ["present"], ["hidden"], []]
+    changes = engine.changes(region="table", t1=base, t2=base + 2)
+    assert [m.after.state for m in changes.disappeared] == ["disappeared"]
+    assert not changes.appeared and not changes.moved
+
+
+@pytest.fixture
+def empty_engine(mongo_uri, db_name):
+    from pymongo import MongoClient
+
+    from percept_memory.memory.store import MemoryStore
+
+    client = MongoClient(mongo_uri, **CLIENT_OPTIONS)
+    memory = MemoryStore(client, f"{db_name}_probe", gridfs_threshold=128 * 1024)
+    memory.prepare()
+    yield memory, QueryEngine(memory)
+    client.drop_database(f"{db_name}_probe")
+    memory.close()
+
+
+def test_changes_between_two_looks_contain_every_true_change(engine, kitchen):
+    """Between consecutive looks at a region: every object truly put there is reported
+    appeared, every one truly taken away disappeared; anything more is an identity split
+    (the same kind of object reported both gone and appeared). Compared by kind: the three
+    white cups are identical, which one is which cannot be seen."""
+    week, truth_of = kitchen
+    last: dict = {}
+    for scene in week.truth.scenes:
+        before = last.get(scene.region)
+        last[scene.region] = scene
+        if before is None:
+            continue
+        answer = engine.changes(region=scene.region, t1=before.time, t2=scene.time)
+        appeared = Counter(kind(truth_of[o.cluster_id]) for o in answer.appeared)
+        gone = Counter(kind(truth_of[m.before.cluster_id]) for m in answer.disappeared)
+        true_appeared = Counter(map(kind, scene.objects)) - Counter(map(kind, before.objects))
+        true_gone = Counter(map(kind, before.objects)) - Counter(map(kind, scene.objects))
+        assert not true_appeared - appeared and not true_gone - gone, scene
+        assert appeared - true_appeared == gone - true_gone, scene
+
+
+@pytest.mark.parametrize("key", [k for k, item in kw.CATALOGUE.items() if item.count == 1])
+def test_where_is_each_object_at_the_end_of_the_week(engine, kitchen, key):
+    week, _ = kitchen
+    item = kw.CATALOGUE[key]
+    truth = week.truth.where_at(f"{key}#1", week.truth.scenes[-1].time)
+    (best,) = engine.where_is(item.brand or item.class_name, limit=1)
+    if truth is None:
+        assert best.state == "disappeared"
+    else:
+        assert (best.region, best.state in ("present", "hidden")) == (truth, True)
+    assert best.evidence and best.evidence[0] == best.last_cluster
+
+
+def test_questions_take_text_object_ids_and_cluster_ids(engine, store):
+    (ketchup,) = engine.where_is("Heinz Ketchup", limit=1)
+    assert engine.where_is(str(ketchup.object_id))[0].object_id == ketchup.object_id
+    assert engine.where_is(str(ketchup.last_cluster))[0].object_id == ketchup.object_id
+    (seen,) = engine.last_seen(str(ketchup.object_id))
+    assert (seen.time, seen.cluster_id) == (ketchup.last_seen, ketchup.last_cluster)
+
+
+def test_where_was_lists_the_places_of_an_object_in_time_order(engine, store, kitchen):
+    _, truth_of = kitchen
+    (fairy,) = engine.where_is("fairy", limit=1)
+    (history,) = engine.where_was(str(fairy.object_id))
+    places = history.places
+    assert places and all(a.since <= a.last_seen <= (a.until or 2**63) <= b.since
+                          for a, b in zip(places, places[1:], strict=False))
+    observed = stored(store, object_id=fairy.object_id)
+    assert sum(p.observations for p in places) == len(observed)
+    for doc in observed:  # every observation lies in a stay on its region
+        t = doc["search"]["time"]
+        assert any(p.since <= t <= p.last_seen and p.region == doc["search"]["region"]
+                   for p in places)
+    windowed = engine.where_was(str(fairy.object_id), after=places[0].last_seen)[0].places
+    assert sum(p.observations for p in windowed) < len(observed)
+
+
+# --- statistics -----------------------------------------------------------------------------
+
+
+def test_annotation_histograms_per_type_and_annotator(engine, kitchen):
+    week, _ = kitchen
+    stats = engine.annotation_stats(robot="pr2")
+    expected = Counter((a.type_name, a.source) for s in week.scenes for c in s.clusters
+                       for a in c.annotations)
+    assert {(c.type, c.annotator): c.count for c in stats.by_annotator} == expected
+    assert stats.clusters == sum(len(s.clusters) for s in week.scenes)
+    by_type = {c.type: c.count for c in stats.by_type}
+    assert by_type["pm.annotation.Classification"] == stats.clusters
+
+
+def test_where_objects_usually_are_also_by_hour(engine, store):
+    usual = engine.cooccurrence("nutella")
+    assert usual.regions[0].region == "shelf"
+    ids = {r.object_id for r in usual.rows}
+    assert sum(r.count for r in usual.rows) == store.clusters.count_documents(
+        {"object_id": {"$in": list(ids)}})
+    hourly = engine.cooccurrence("nutella", by_hour=True)
+    assert sum(r.count for r in hourly.regions) == sum(r.count for r in usual.regions)
+    hours = {r.hour for r in hourly.rows}
+    assert hours <= set(range(24)) and len(hours) > 3
+
+
+def test_annotator_timings_from_the_scene_logs(engine, kitchen):
+    week, _ = kitchen
+    stats = engine.timings(robot="pr2")
+    lines = [line for s in week.scenes for line in s.log]
+    ocr = next(t for t in stats.annotators if t.annotator == "OCRAnnotator")
+    durations = [x.duration_ms for x in lines if x.source == "OCRAnnotator" and x.duration_ms]
+    assert ocr.runs == len(durations) and ocr.max_ms == max(durations)
+    assert ocr.mean_ms == pytest.approx(sum(durations) / len(durations))
+    assert ocr.warnings == sum(x.level == "warning" for x in lines if x.source == "OCRAnnotator")
+    assert stats.scenes == len(week.scenes)
+
+
+# --- every query path uses an index ---------------------------------------------------------
+
+PATHS = [
+    ("clusters", {"text": "Prinles"}),
+    ("clusters", {"text": '"tomato ketchup"', "sort": "oldest", "count": True}),
+    ("clusters", {"region": "table", "count": True}),
+    ("clusters", {"robot": "pr2", "sort": "oldest"}),
+    ("clusters", {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00", "count": True}),
+    ("clusters", {"at": "2024-03-05T06:00"}),
+    ("clusters", {"box": "1.3,4.2,0.7,2.5,5.0,1.0"}),
+    ("clusters", {"sphere": "1.9,4.6,0.8,0.3"}),
+    ("clusters", {"near": "1.9,4.6,0.8", "k": 5}),
+    ("clusters", {"near": "40,40,0", "k": 5}),  # far from everything: grows to the last shell
+    ("clusters", {"where": "classification:confidence>0.9"}),
+    ("clusters", {"where": "shape:shape=cylinder", "sort": "oldest"}),
+    ("where_is", {"x": "the ketchup"}),
+    ("last_seen", {"x": "Prinles"}),
+    ("where_was", {"x": "fairy", "after": "2024-03-05T06:00"}),
+    ("what_is_at", {"region": "table", "t": "2024-03-06T08:30"}),
+    ("what_is_at", {"sphere": "1.9,4.6,0.8,0.5"}),
+    ("changes", {"region": "table", "t1": "2024-03-06T07:00", "t2": "2024-03-06T10:00"}),
+    ("annotation_stats", {"after": "2024-03-06T07:00", "before": "2024-03-06T10:00"}),
+    ("cooccurrence", {"x": "nutella", "by_hour": True}),
+    ("cooccurrence", {"after": "2024-03-06T07:00"}),
+    ("timings", {"robot": "pr2"}),
+]
+
+
+@pytest.mark.parametrize("name, query", PATHS, ids=[f"{n}-{i}" for i, (n, _) in enumerate(PATHS)])
+def test_every_query_path_uses_an_index(store, kitchen, name, query):
+    plans: list = []
+    getattr(QueryEngine(store, explain=plans), name)(**query)
+    assert plans
+    for plan in plans:
+        assert "COLLSCAN" not in plan["stages"] and plan["indexes"], plan
+
+
+def test_the_async_engine_gives_the_same_answers(store, kitchen, mongo_uri):
+    queries = [("clusters", {"text": "Prinles", "limit": 5}), ("where_is", {"x": "ketchup"}),
+               ("what_is_at", {"region": "shelf", "t": "2024-03-07T12:00"}),
+               ("annotation_stats", {"region": "shelf"})]
+
+    async def ask():
+        client = AsyncMongoClient(mongo_uri, **CLIENT_OPTIONS)
+        engine = AsyncQueryEngine(AsyncMemoryStore(client, store.db.name, gridfs_threshold=1024))
+        try:
+            return [await getattr(engine, name)(**query) for name, query in queries]
+        finally:
+            await client.close()
+
+    sync = QueryEngine(store)
+    assert asyncio.run(ask()) == [getattr(sync, name)(**query) for name, query in queries]

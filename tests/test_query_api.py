@@ -1,0 +1,175 @@
+"""The query API over HTTP and `pmem query`: both forms of every endpoint, one error format,
+limits, a server-side time limit, and no way for a user value to become a MongoDB operator."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from click.testing import CliRunner
+from fastapi.testclient import TestClient
+from pymongo import MongoClient, monitoring
+
+from percept_memory.cli import main
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.queries.engine import QUERIES, QueryEngine
+from percept_memory.webui.app import create_app
+from percept_memory.webui.queries import PATHS
+
+# a valid query of every endpoint, as query-string pairs
+VALID = {
+    "clusters": {"text": "Prinles", "region": "shelf", "limit": "3"},
+    "where_is": {"x": "ketchup"},
+    "where_was": {"x": "fairy"},
+    "last_seen": {"x": "milk"},
+    "what_is_at": {"region": "table", "t": "2024-03-06T08:30"},
+    "changes": {"region": "table", "t1": "2024-03-06T07:00", "t2": "2024-03-06T10:00"},
+    "annotation_stats": {"region": "shelf"},
+    "cooccurrence": {"x": "nutella"},
+    "timings": {"robot": "pr2"},
+}
+assert set(VALID) == set(QUERIES)
+
+
+def path(name: str) -> str:
+    return "/api/" + PATHS.get(name, name.replace("_", "-"))
+
+
+@pytest.fixture(scope="module")
+def client(store, kitchen):
+    return TestClient(create_app(store, Settings()))
+
+
+@pytest.mark.parametrize("name", VALID)
+def test_query_string_and_json_body_give_the_same_answer(client, name):
+    by_get = client.get(path(name), params=VALID[name])
+    body = {k: ([v] if k == "region" and name == "clusters" else v) for k, v in VALID[name].items()}
+    by_post = client.post(path(name), json=body)
+    assert by_get.status_code == by_post.status_code == 200, (by_get.text, by_post.text)
+    assert by_get.json() == by_post.json() and by_get.json()
+
+
+def test_pages_follow_the_cursor(client):
+    first = client.get("/api/clusters", params={"region": "table", "limit": 5}).json()
+    second = client.get("/api/clusters", params={"region": "table", "limit": 5,
+                                                 "cursor": first["next"]}).json()
+    both = [h["id"] for h in first["items"] + second["items"]]
+    everything = client.post("/api/clusters", json={"region": ["table"], "limit": 10}).json()
+    assert both == [h["id"] for h in everything["items"]] and len(set(both)) == 10
+
+
+def test_the_openapi_description_lists_every_query(client):
+    paths = client.get("/openapi.json").json()["paths"]
+    for name in QUERIES:
+        assert {"get", "post"} <= set(paths[path(name)])
+    names = {p["name"] for p in paths["/api/clusters"]["get"]["parameters"]}
+    assert {"text", "region", "box", "sphere", "near", "where", "cursor"} <= names
+
+
+SMUGGLED_JSON = [{"$where": "sleep(1000)"}, {"$gt": ""}, {"$ne": None}, [{"$gt": ""}],
+                 {"$function": {"body": "return 1", "args": [], "lang": "js"}}]
+
+
+@pytest.mark.parametrize("name", VALID)
+@pytest.mark.parametrize("operator", SMUGGLED_JSON, ids=str)
+def test_operators_smuggled_through_json_are_refused(client, store, name, operator):
+    for field in VALID[name]:
+        body = {**VALID[name], field: operator}
+        response = client.post(path(name), json=body)
+        assert response.status_code == 422, (field, response.text)
+        assert set(response.json()) == {"error"} and response.json()["error"]["problems"]
+    response = client.post(path(name), json={**VALID[name], "$where": "1"})
+    assert response.status_code == 422
+
+
+@pytest.mark.parametrize("name", VALID)
+def test_operators_in_query_strings_are_plain_data_or_refused(client, name):
+    bracketed = client.get(f"{path(name)}?{next(iter(VALID[name]))}[$gt]=")
+    assert bracketed.status_code == 422
+    for field in VALID[name]:
+        response = client.get(path(name), params={**VALID[name], field: "$where"})
+        assert response.status_code in (200, 404, 422), response.text
+        if response.status_code == 200:  # taken as the text "$where", which matches nothing
+            assert "$where" not in json.dumps(response.json())
+
+
+def test_operator_text_is_data_matching_nothing(client):
+    as_list = client.post("/api/clusters", json={"region": ["$where"], "robot": ["$ne"]})
+    assert as_list.status_code == 200 and as_list.json()["items"] == []
+    for params in ({"region": "$where"}, {"robot": '{"$ne": null}'}, {"text": "$where"},
+                   {"where": 'shape:shape={"$ne": null}'}):
+        response = client.get("/api/clusters", params=params)
+        assert response.status_code == 200 and response.json()["items"] == [], params
+    refused = client.get("/api/clusters", params={"where": "shape:$where=1"})
+    assert refused.status_code == 422 and "$" in refused.json()["error"]["problems"][0]["message"]
+
+
+@pytest.mark.parametrize("params, problem", [
+    ({"limit": "501"}, "limit"), ({"near": "0,0,0", "k": "5000"}, "k"),
+    ({"region": [f"r{i}" for i in range(40)]}, "region"),
+    ({"where": [f"shape:shape=s{i}" for i in range(20)]}, "where"),
+    ({"text": " ".join(f"w{i}" for i in range(30))}, ""),
+    ({"text": "x" * 600}, "text"), ({"box": "1,1,1,0,0,0"}, "box"), ({"limit": "2", "k": "1"}, ""),
+    ({"after": "yesterday"}, "after"), ({"near": "0,0,0", "sort": "newest"}, ""),
+    ({"region": "table", "bogus": "1"}, "bogus"), ({"limit": ["1", "2"]}, "limit"),
+])
+def test_limits_and_bad_parameters_get_422_naming_them(client, params, problem):
+    response = client.get("/api/clusters", params=params)
+    if params.get("limit") == "2" and "k" in params:
+        assert response.status_code == 200  # k without near is harmless
+        return
+    assert response.status_code == 422, response.text
+    assert problem in {p["path"] for p in response.json()["error"]["problems"]}
+
+
+def test_unknown_objects_are_404_and_query_errors_422(client):
+    missing = client.get("/api/where-is", params={"x": "0" * 24})
+    assert missing.status_code == 404 and "0" * 24 in missing.json()["error"]["message"]
+    other = client.get("/api/clusters", params={"cursor": "bm90IGEgY3Vyc29y"})
+    assert other.status_code == 422 and "cursor" in other.json()["error"]["message"]
+    big = client.post("/api/clusters", content=b"{" + b" " * 70_000 + b"}",
+                      headers={"content-type": "application/json"})
+    assert big.status_code == 413
+
+
+class _Commands(monitoring.CommandListener):
+    def __init__(self):
+        self.commands: list = []
+
+    def started(self, event):
+        self.commands.append(event.command)
+
+    def succeeded(self, event):
+        pass
+
+    def failed(self, event):
+        pass
+
+
+def test_every_database_command_carries_the_time_limit(mongo_uri, store, kitchen):
+    listener = _Commands()
+    client = MongoClient(mongo_uri, event_listeners=[listener], **CLIENT_OPTIONS)
+    engine = QueryEngine(MemoryStore(client, store.db.name, gridfs_threshold=1024),
+                         Settings(query_timeout_ms=1234))
+    for name, query in VALID.items():
+        getattr(engine, name)(**query)
+    commands = [c for c in listener.commands if {"find", "aggregate", "count"} & set(c)]
+    assert len(commands) > 20 and all(c.get("maxTimeMS") == 1234 for c in commands)
+    client.close()
+
+
+def test_pmem_query_answers_on_the_command_line(mongo_uri, db_name, kitchen):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    run = CliRunner().invoke
+    where = run(main, ["query", "where-is", "Heinz", "--limit", "1"], env=env)
+    assert where.exit_code == 0, where.output
+    assert json.loads(where.stdout)[0]["region"] == "shelf"
+    hits = run(main, ["query", "clusters", "--text", "Prinles", "--region", "shelf",
+                      "--where", "classification:confidence>0.5", "--count"], env=env)
+    assert hits.exit_code == 0 and json.loads(hits.stdout)["total"] > 0
+    at = run(main, ["query", "what-is-at", "--region", "table", "--t", "2024-03-06T08:30"],
+             env=env)
+    assert at.exit_code == 0 and json.loads(at.stdout)["objects"]
+    bad = run(main, ["query", "clusters", "--limit", "9999"], env=env)
+    assert bad.exit_code == 1 and "limit" in bad.output

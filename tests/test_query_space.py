@@ -1,0 +1,96 @@
+"""3D queries are exact: box, sphere and k-nearest against brute force on random points, at
+scales from millimetres to kilometres, with query corners, centres and radii taken from the
+points themselves so that boundaries are hit exactly."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from percept_memory.memory.types import Cluster, Location, Scene
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import Box, Sphere
+from percept_memory.queries.space import squared_distance_py
+
+
+def random_points(rng: np.random.Generator) -> list[tuple[float, float, float]]:
+    """Clumps at several scales (a cup's width to a campus), a few far away, some repeated."""
+    points = []
+    for scale, count in ((0.01, 60), (0.3, 80), (5.0, 80), (300.0, 40), (5000.0, 10)):
+        centre = rng.uniform(-2 * scale, 2 * scale, 3)
+        points += [tuple(map(float, centre + rng.normal(0, scale, 3))) for _ in range(count)]
+    points += points[:10]  # the same position twice
+    return [tuple(round(v, 6) for v in p) for p in points]
+
+
+@pytest.fixture(scope="module")
+def space(store):
+    points = random_points(np.random.default_rng(7))
+    scenes = [Scene(timestamp=1_000 + i, robot="probe", clusters=[
+        Cluster(annotations=[Location(position=p)]) for p in points[i::20]]) for i in range(20)]
+    store.put_scenes(scenes)
+    by_id = {c.id: c.position for s in scenes for c in s.clusters}
+    return QueryEngine(store), by_id
+
+
+def all_hits(engine, **query) -> set:
+    ids, cursor = set(), None
+    while True:
+        page = engine.clusters(**query, limit=500, **({"cursor": cursor} if cursor else {}))
+        ids |= {h.id for h in page.items}
+        if not page.next:
+            return ids
+        cursor = page.next
+
+
+POSITIONS = st.integers(0, 329)
+SLACK = st.sampled_from([0.0, 0.0, 1e-9, 0.001, 0.05, 1.0, 20.0, 400.0, 9000.0])
+FAST = settings(max_examples=60, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@FAST
+@given(a=POSITIONS, b=POSITIONS, slack=SLACK)
+def test_box_is_exact(space, a, b, slack):
+    engine, by_id = space
+    positions = list(by_id.values())
+    p, q = positions[a % len(positions)], positions[b % len(positions)]
+    low = tuple(min(u, v) - slack for u, v in zip(p, q, strict=True))
+    high = tuple(max(u, v) + slack for u, v in zip(p, q, strict=True))
+    expected = {i for i, x in by_id.items()
+                if all(lo <= v <= hi for lo, v, hi in zip(low, x, high, strict=True))}
+    assert all_hits(engine, box=Box(low=low, high=high)) == expected
+
+
+@FAST
+@given(a=POSITIONS, b=POSITIONS, extra=SLACK)
+def test_sphere_is_exact(space, a, b, extra):
+    engine, by_id = space
+    positions = list(by_id.values())
+    centre, edge = positions[a % len(positions)], positions[b % len(positions)]
+    radius = math.sqrt(squared_distance_py(centre, edge)) + extra or 0.001
+    sphere = Sphere(center=centre, radius=radius)
+    expected = {i for i, x in by_id.items() if squared_distance_py(centre, x) <= radius * radius}
+    assert all_hits(engine, sphere=sphere) == expected
+
+
+@FAST
+@given(a=POSITIONS, offset=st.tuples(*[st.sampled_from([0, 0.004, -0.3, 2.5, 70.0, -4000.0])] * 3),
+       k=st.integers(1, 40))
+def test_nearest_are_exact(space, a, offset, k):
+    engine, by_id = space
+    positions = list(by_id.values())
+    point = tuple(u + d for u, d in zip(positions[a % len(positions)], offset, strict=True))
+    hits = engine.clusters(near=point, k=k).items
+    expected = sorted(math.sqrt(squared_distance_py(point, x)) for x in by_id.values())[:k]
+    assert [h.distance for h in hits] == expected
+    assert all(math.sqrt(squared_distance_py(point, by_id[h.id])) == h.distance for h in hits)
+
+
+def test_more_neighbours_asked_than_there_are_gives_them_all(space):
+    engine, by_id = space
+    assert len(engine.clusters(near=(0, 0, 0), k=1000).items) == len(by_id)

@@ -481,3 +481,38 @@ def test_catalogue_backend_annotates_real_sample_clusters(fresh, mongo_uri, db_n
     names = {p.name for c in fresh.get_clusters([c.id for c in scenes[0].clusters]).values()
              for p in c.annotations_of(Product)}
     assert {"Kölln Müsli Knusper Honig-Nuss", "albi fruit juice"} <= names
+
+
+# --- the queue as the CLI and the API show it ---------------------------------------------------
+
+
+def test_failed_jobs_show_their_error_in_the_cli_and_the_api(fresh, mongo_uri, db_name):
+    from click.testing import CliRunner
+    from fastapi.testclient import TestClient
+
+    from percept_memory.cli import main
+    from percept_memory.webui.app import create_app
+
+    server = LookupServer([(400, {"error": "not an image"}, 0)])
+    try:
+        ingest(fresh, [scene_with_crops([cut(kitchen_frame(), MUESLI_BOX)], 1)])
+        asyncio.run(until_idle(settings_for(mongo_uri, db_name, lookup_url=server.url),
+                               backend="http"))
+    finally:
+        server.close()
+    client = TestClient(create_app(fresh, Settings()))
+    body = client.get("/api/jobs", params={"state": "failed"}).json()
+    assert body["counts"] == {"queued": 0, "running": 0, "done": 0, "failed": 1}
+    (job,) = body["jobs"]
+    assert job["state"] == "failed" and "HTTP 400" in job["error"]
+    assert "not an image" in job["error"]
+    bad = client.get("/api/jobs", params={"state": "lost", "limit": -1})
+    assert bad.status_code == 422 and len(bad.json()["error"]["problems"]) == 2
+
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    shown = CliRunner().invoke(main, ["jobs", "--state", "failed"], env=env)
+    assert shown.exit_code == 0 and "HTTP 400" in shown.stdout and "failed: 1" in shown.stdout
+    again = CliRunner().invoke(main, ["jobs", "--retry-failed", "--json"], env=env)
+    assert again.exit_code == 0 and json.loads(again.stdout)["counts"]["queued"] == 1
+    missing = CliRunner().invoke(main, ["worker", "--backend", "http"], env=env)
+    assert missing.exit_code == 1 and "PMEM_LOOKUP_URL" in missing.output

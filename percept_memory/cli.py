@@ -331,11 +331,14 @@ def shared_data_dir() -> Path:
               help="the lookup backend  [default: PMEM_LOOKUP_BACKEND]")
 @click.option("--concurrency", type=click.IntRange(1),
               help="lookups in flight  [default: PMEM_LOOKUP_CONCURRENCY]")
+@click.option("--nice", default=10, show_default=True, type=click.IntRange(0, 19),
+              help="lower CPU priority, so ingest on the same machine comes first")
 @click.pass_obj
-def worker(settings: Settings, backend: str | None, concurrency: int | None) -> None:
+def worker(settings: Settings, backend: str | None, concurrency: int | None, nice: int) -> None:
     """Run lookup jobs until SIGTERM or Ctrl-C: each new cluster's crop is looked up (the
     shared pHash cache first) and the results appended to it. Start as many as you like, on
     any machine: they share the queue through leases."""
+    os.nice(nice)
     counts = asyncio.run(run_worker(settings, backend=backend, concurrency=concurrency))
     click.echo(f"worker stopped: {counts['done']} jobs done ({counts['cached']} from the cache), "
                f"{counts['retried']} to retry, {counts['failed']} failed, "

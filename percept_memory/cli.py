@@ -7,9 +7,11 @@ with code 1, never a traceback.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +22,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from percept_memory.ingest import kitchen_week, rgbd, robosherlock
+from percept_memory.ingest.backends import BackendSetupError
+from percept_memory.ingest.jobs import STATES, LookupEnqueuer, job_report, requeue_failed
 from percept_memory.ingest.scene_log import read_scene_log
 from percept_memory.ingest.service import ImportSummary, IngestError, IngestService, SourceError
+from percept_memory.ingest.workers import run_worker, worker_processes
 from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
@@ -46,7 +51,8 @@ class _Group(click.Group):
     def invoke(self, ctx: click.Context) -> Any:
         try:
             return super().invoke(ctx)
-        except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError) as exc:
+        except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError,
+                BackendSetupError) as exc:
             raise click.ClickException(str(exc)) from exc
 
 
@@ -167,7 +173,7 @@ def ingest_with_progress(
         console=Console(stderr=True), transient=True,
     ) as progress:
         task = progress.add_task(source, total=None)
-        service = IngestService(store, after_store=[Consolidator(store)])
+        service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
         for ingested in service.ingest_stream(items, context):
             summary.add(ingested)
             progress.advance(task)
@@ -259,16 +265,42 @@ def serve(settings: Settings, host: str, port: int) -> None:
               help="serve the web app once the data is in")
 @click.option("--host", default="127.0.0.1", show_default=True)
 @click.option("--port", default=8000, show_default=True, type=int)
+@click.option("--workers", default=1, show_default=True, type=click.IntRange(0),
+              help="enrichment worker processes looking the clusters up (0: none)")
+@click.option("--backend", default="simulated", show_default=True,
+              type=click.Choice(["simulated", "catalogue"]), help="what the workers ask")
 @click.pass_obj
-def demo(settings: Settings, days: int, serving: bool, host: str, port: int) -> None:
+def demo(settings: Settings, days: int, serving: bool, host: str, port: int, workers: int,
+         backend: str) -> None:
     """The demo: the embedded database with the real RoboSherlock data and a generated kitchen
-    week, then the web app. Running it again adds nothing that is there already."""
-    with MemoryStore.open(settings) as store:
+    week, enrichment workers appending lookup results to the clusters as they come in, then
+    the web app (with --no-serve: until the lookups are done). Running it again adds nothing
+    that is there already."""
+    with MemoryStore.open(settings) as store, worker_processes(workers, backend) as running:
         for source, scenes in demo_sources(days):
             echo_summary(source, ingest_with_progress(store, source, labelled(source, scenes)))
         if serving:
             click.echo(f"percept-memory demo at http://{host}:{port}/docs  (Ctrl-C stops)")
             uvicorn.run(create_app(store, settings), host=host, port=port, log_level="warning")
+        elif running:
+            counts = wait_for_lookups(store, running)
+            click.echo(f"lookups: {counts['done']} done, {counts['failed']} failed")
+
+
+def wait_for_lookups(store: MemoryStore, workers: list) -> dict[str, int]:
+    """Jobs per state once none is queued or running, with a progress bar on stderr."""
+    with Progress(TextColumn("[bold]lookups"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("lookups", total=None)
+        while True:
+            counts = job_report(store, limit=0)["counts"]
+            bar.update(task, total=sum(counts.values()),
+                       completed=counts["done"] + counts["failed"])
+            if not counts["queued"] + counts["running"]:
+                return counts
+            if all(worker.poll() is not None for worker in workers):
+                raise click.ClickException("the lookup workers stopped; see their errors above")
+            time.sleep(0.5)
 
 
 def demo_sources(days: int):
@@ -291,6 +323,57 @@ def shared_data_dir() -> Path:
         raise click.ClickException(
             f"no RoboSherlock data at {folder}: set PMEM_SHARED_DATA to the robosherlock folder")
     return folder
+
+
+# --- pmem worker / pmem jobs: enrichment ---------------------------------------------------------
+
+
+@main.command()
+@click.option("--backend", type=click.Choice(["simulated", "catalogue", "http"]),
+              help="the lookup backend  [default: PMEM_LOOKUP_BACKEND]")
+@click.option("--concurrency", type=click.IntRange(1),
+              help="lookups in flight  [default: PMEM_LOOKUP_CONCURRENCY]")
+@click.option("--nice", default=10, show_default=True, type=click.IntRange(0, 19),
+              help="lower CPU priority, so ingest on the same machine comes first")
+@click.pass_obj
+def worker(settings: Settings, backend: str | None, concurrency: int | None, nice: int) -> None:
+    """Run lookup jobs until SIGTERM or Ctrl-C: each new cluster's crop is looked up (the
+    shared pHash cache first) and the results appended to it. Start as many as you like, on
+    any machine: they share the queue through leases."""
+    os.nice(nice)
+    counts = asyncio.run(run_worker(settings, backend=backend, concurrency=concurrency))
+    click.echo(f"worker stopped: {counts['done']} jobs done ({counts['cached']} from the cache), "
+               f"{counts['retried']} to retry, {counts['failed']} failed, "
+               f"{counts['released']} released", err=True)
+
+
+@main.command()
+@click.option("--state", type=click.Choice(STATES), help="list only jobs in this state")
+@click.option("--limit", default=20, show_default=True, type=click.IntRange(0),
+              help="how many of the latest jobs to list")
+@click.option("--retry-failed", is_flag=True, help="queue the failed jobs again first")
+@click.option("--json", "as_json", is_flag=True, help="print the report as JSON")
+@click.pass_obj
+def jobs(settings: Settings, state: str | None, limit: int, retry_failed: bool,
+         as_json: bool) -> None:
+    """The enrichment queue: jobs per state, and the latest jobs with their last error."""
+    with MemoryStore.open(settings) as store:
+        if retry_failed:
+            click.echo(f"{requeue_failed(store)} failed job(s) queued again", err=True)
+        report = job_report(store, state, limit)
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+        return
+    click.echo("  ".join(f"{name}: {count:,}" for name, count in report["counts"].items()))
+    for job in report["jobs"]:
+        detail = job.get("error") if job["state"] != "done" else _outcome(job.get("outcome", {}))
+        click.echo(f"{job['id']}  {job['state']:<7} attempts {job['attempts']}  "
+                   f"{job['updated'][:19]}  {detail or ''}")
+
+
+def _outcome(outcome: dict) -> str:
+    how = f"cached, {outcome['hash_distance']} bits off" if outcome.get("cached") else "fresh"
+    return f"{outcome.get('annotations', 0)} annotations ({outcome.get('backend')}, {how})"
 
 
 @main.command()

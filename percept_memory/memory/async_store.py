@@ -138,9 +138,16 @@ class AsyncMemoryStore(StoreBase):
 
     async def add_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> ObjectId:
         """See MemoryStore.add_annotation: idempotent by annotation id."""
-        annotation_id = annotation.ensure_id()
-        await self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotation))
-        return annotation_id
+        return (await self.add_annotations(cluster_id, [annotation]))[0]
+
+    async def add_annotations(
+        self, cluster_id: ObjectId, annotations: Sequence[Annotation]
+    ) -> list[ObjectId]:
+        """See MemoryStore.add_annotations: one transaction, idempotent by annotation id."""
+        annotation_ids = [annotation.ensure_id() for annotation in annotations]
+        await self._rewrite_cluster(
+            cluster_id, lambda cluster: docs.appended(cluster, annotations))
+        return annotation_ids
 
     async def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
         await self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))

@@ -304,11 +304,14 @@ def joined_blobs(wanted: list[str], chunk_docs: Iterable[Mapping]) -> dict[str, 
     return {blob: b"".join(data for _, data in sorted(chunks)) for blob, chunks in parts.items()}
 
 
-def appended(cluster: Cluster, annotation: Annotation) -> Cluster | None:
-    """The cluster with the annotation added; None when it carries that annotation already."""
-    if any(getattr(a, "id", None) == annotation.id for a in cluster.annotations):
+def appended(cluster: Cluster, annotations: Sequence[Annotation]) -> Cluster | None:
+    """The cluster with those of the annotations it does not carry yet (by id) added; None
+    when it carries them all already."""
+    present = {getattr(a, "id", None) for a in cluster.annotations}
+    new = [a for a in annotations if a.id not in present]
+    if not new:
         return None
-    cluster.annotations.append(annotation)
+    cluster.annotations.extend(new)
     return cluster
 
 

@@ -70,6 +70,17 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("scene_id", ASCENDING)], name="scene"),
         IndexModel([("time", DESCENDING)], name="time"),
     ],
+    JOBS: [  # ingest/jobs.py: claim the next due job; one job per kind per cluster; listings
+        IndexModel([("due", ASCENDING)], name="due", sparse=True),
+        IndexModel([("kind", ASCENDING), ("cluster_id", ASCENDING)], unique=True,
+                   name="kind_cluster_unique"),
+        IndexModel([("state", ASCENDING), ("updated", DESCENDING)], name="state_updated"),
+        IndexModel([("updated", DESCENDING)], name="updated"),
+    ],
+    LOOKUP_CACHE: [  # ingest/lookup_cache.py: one cached result per service per hash
+        IndexModel([("service", ASCENDING), ("hash", ASCENDING)], unique=True,
+                   name="service_hash_unique"),
+    ],
     # the indexes the GridFS spec asks for, since blobs are written without pymongo's GridFS
     GRIDFS_FILES: [IndexModel([("filename", ASCENDING), ("uploadDate", ASCENDING)])],
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],

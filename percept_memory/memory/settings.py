@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 import platformdirs
 from pydantic import AliasChoices, Field
@@ -55,6 +56,55 @@ class Settings(BaseSettings):
     query_timeout_ms: int = Field(
         default=2000, ge=1,
         description="PMEM_QUERY_TIMEOUT_MS: server-side time limit of each query operation",
+    )
+
+    # --- enrichment workers (ingest/workers.py) ---
+    lookup_backend: Literal["simulated", "catalogue", "http"] = Field(
+        default="simulated",
+        description="PMEM_LOOKUP_BACKEND: what `pmem worker` asks: simulated, catalogue or http",
+    )
+    lookup_url: str | None = Field(
+        default=None, description="PMEM_LOOKUP_URL: the HTTP JSON lookup service (http backend)"
+    )
+    lookup_auth: str | None = Field(
+        default=None,
+        description="PMEM_LOOKUP_AUTH: Authorization header sent to it, e.g. 'Bearer <key>'",
+    )
+    lookup_timeout_s: float = Field(
+        default=10.0, gt=0,
+        description="PMEM_LOOKUP_TIMEOUT_S: longest wait for one lookup before it is retried",
+    )
+    lookup_retries: int = Field(
+        default=2, ge=0,
+        description="PMEM_LOOKUP_RETRIES: quick retries of a failed HTTP request in one attempt",
+    )
+    lookup_concurrency: int = Field(
+        default=64, ge=1,
+        description="PMEM_LOOKUP_CONCURRENCY: lookups in flight per worker process",
+    )
+    lookup_cache_radius: int = Field(
+        default=10, ge=0, le=32,
+        description="PMEM_LOOKUP_CACHE_RADIUS: pHash bits a crop may differ by to reuse a result",
+    )
+    catalogue_dir: Path | None = Field(
+        default=None,
+        description="PMEM_CATALOGUE_DIR: product images + products.json (default: the shipped one)",
+    )
+    simulated_seed: int = Field(
+        default=0, description="PMEM_SIMULATED_SEED: seed of the simulated lookup service"
+    )
+    job_lease_s: float = Field(
+        default=30.0, gt=0,
+        description="PMEM_JOB_LEASE_S: a claimed job is taken over this long after its last "
+                    "heartbeat",
+    )
+    job_max_attempts: int = Field(
+        default=5, ge=1,
+        description="PMEM_JOB_MAX_ATTEMPTS: attempts before a job is marked failed",
+    )
+    job_backoff_s: float = Field(
+        default=2.0, ge=0,
+        description="PMEM_JOB_BACKOFF_S: wait before the first retry; doubles each attempt",
     )
 
 

@@ -214,9 +214,15 @@ class MemoryStore(StoreBase):
     def add_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> ObjectId:
         """Append an annotation to a stored cluster. Idempotent: appending the same annotation
         (same id) again changes nothing, so a retried enrichment job never duplicates."""
-        annotation_id = annotation.ensure_id()
-        self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotation))
-        return annotation_id
+        return self.add_annotations(cluster_id, [annotation])[0]
+
+    def add_annotations(
+        self, cluster_id: ObjectId, annotations: Sequence[Annotation]
+    ) -> list[ObjectId]:
+        """Append several annotations in one transaction, all or none; idempotent by id."""
+        annotation_ids = [annotation.ensure_id() for annotation in annotations]
+        self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotations))
+        return annotation_ids
 
     def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
         """Replace the annotation with the same id on a stored cluster."""

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import json
 import secrets
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.docs import get_swagger_ui_html
@@ -19,6 +19,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
 from swagger_ui_bundle import swagger_ui_path
 
+from percept_memory.ingest.jobs import LookupEnqueuer, State, job_report
 from percept_memory.ingest.service import IngestError, IngestService
 from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.settings import Settings
@@ -52,7 +53,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
-    service = IngestService(store, after_store=[Consolidator(store)])
+    service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
 
@@ -105,6 +106,15 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         ]}
 
     app.include_router(query_router(QueryEngine(store, settings)))
+
+    @app.get("/api/jobs", summary="The enrichment queue: jobs per state, the latest jobs")
+    def list_jobs(state: State | None = None,
+                  limit: Annotated[int, Query(ge=0, le=1000)] = 50) -> dict[str, Any]:
+        """Counts per state (queued, running, done, failed) and the `limit` most recently
+        updated jobs (of `state`, if given): attempts, worker, the last error of a failed
+        job, the outcome of a done one (backend, cached or fresh, hash distance, latency)."""
+        return job_report(store, state, limit)
+
     return app
 
 

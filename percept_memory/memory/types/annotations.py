@@ -17,7 +17,7 @@ from typing import Annotated, ClassVar, Literal
 import numpy as np
 from pydantic import AliasChoices, Field
 
-from .base import Identifiable, Timestamp, stored_type
+from .base import Id, Identifiable, Model, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -262,10 +262,24 @@ class Barcode(Annotation):
         return _same_label(a.code, b.code)
 
 
+@stored_type("pm.lookup.Provenance")
+class LookupProvenance(Model):
+    """Where a lookup result came from: the backend, fresh from it or reused from the
+    perceptual-hash cache (with the Hamming distance of the two crops' hashes), how long getting
+    it took, and the enrichment job that appended it."""
+
+    backend: str
+    cached: bool = False
+    hash_distance: Annotated[int, Field(ge=0, le=64)] = 0
+    latency_ms: Annotated[float, Field(ge=0)] = 0.0
+    job_id: Id | None = None
+
+
 @stored_type("pm.annotation.WebLookup", aliases=("rs.annotation.Goggles",))
 class WebLookup(Annotation):
     """One result of a web image lookup (thesis 5.4): a category (text, logo, product, similar
-    image, ...), its title, the matched region and links."""
+    image, ...), its title, the matched region and links; `provenance` when an enrichment
+    worker appended it."""
 
     naming_weight: ClassVar[float] = 1.0
 
@@ -274,6 +288,7 @@ class WebLookup(Annotation):
     title: str
     box: Box | None = None
     links: list[str] = []
+    provenance: LookupProvenance | None = None
 
     def labels(self) -> list[str]:
         return [self.title] if self.category in ("logo", "product") else []

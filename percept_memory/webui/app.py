@@ -25,6 +25,8 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 
+from .pages import mount_pages
+
 
 class ApiError(Exception):
     def __init__(self, status: int, message: str, problems: list | None = None):
@@ -52,6 +54,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     service = IngestService(store, after_store=[Consolidator(store)])
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
+    mount_pages(app, store)  # the HTML pages (pages.py)
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:

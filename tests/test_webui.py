@@ -68,6 +68,7 @@ def hostile():
         Classification(class_name=HOSTILE, confidence=0.5),
         WebLookup(category="text", title="evil", links=["javascript:alert(1)",
                                                         "https://example.org/a?b=<i>"]),
+        {"_type": "rs.annotation.Segment", "label": "<b>bold</b>", "score": 0.25},  # unknown
     ])
     return Scene(timestamp=HOSTILE_STAMP, robot="mallory", clusters=[cluster],
                  log=[LogLine(source="OCRAnnotator", message=f"read {HOSTILE}")])
@@ -235,6 +236,12 @@ def test_untrusted_text_is_escaped(client, hostile):
     scene = client.get(f"/scenes/{hostile.id}").text
     assert 'href="javascript:' not in scene and "javascript:alert(1)" in scene
     assert 'href="https://example.org/a?b=&lt;i&gt;"' in scene
+
+
+def test_unknown_annotation_types_render_as_field_tables(client, hostile):
+    scene = client.get(f"/scenes/{hostile.id}").text
+    assert "rs.annotation.Segment" in scene and "&lt;b&gt;bold&lt;/b&gt;" in scene
+    assert '<meter min="0" max="1" value="0.25">' in scene
 
 
 def test_every_page_sends_a_content_security_policy(client, week, hostile):

@@ -72,6 +72,10 @@ def page_routes(store: MemoryStore) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
     objects, events = store.db[OBJECTS], store.db[EVENTS]
 
+    async def stored(get, text: str, kind: str):
+        """The stored scene or cluster an URL names, or a 404 page."""
+        return await run_in_threadpool(_found, get, _object_id(text, kind))
+
     @router.get("/")
     @router.get("/scenes")
     async def scene_log(request: Request, robot: str = "", since: str = "", until: str = "",
@@ -109,7 +113,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     @router.get("/scenes/{scene_id}")
     async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
-        scene = await run_in_threadpool(_found, store.get_scene, _object_id(scene_id, "scene"))
+        scene = await stored(store.get_scene, scene_id, "scene")
 
         def load() -> tuple[dict, dict]:
             ids = [c.object_id for c in scene.clusters if c.object_id]
@@ -127,8 +131,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     @router.get("/clusters/{cluster_id}")
     async def cluster_page(request: Request, cluster_id: str) -> HTMLResponse:
-        cluster = await run_in_threadpool(_found, store.get_cluster,
-                                          _object_id(cluster_id, "cluster"))
+        cluster = await stored(store.get_cluster, cluster_id, "cluster")
 
         def load() -> tuple[dict | None, dict | None, list[dict]]:
             scene = store.scenes.find_one({"_id": cluster.scene_id}, LIST_FIELDS)
@@ -159,7 +162,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     @router.get("/img/scenes/{scene_id}/images/{name}")
     async def scene_image(scene_id: str, name: str) -> Response:
-        scene = await run_in_threadpool(_found, store.get_scene, _object_id(scene_id, "scene"))
+        scene = await stored(store.get_scene, scene_id, "scene")
         if name not in scene.images:
             raise PageError(404, f"scene {scene_id} has no image {name!r}")
         return await _png(scene.images[name])
@@ -167,7 +170,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
     @router.get("/img/scenes/{scene_id}/thumb")
     async def scene_thumbnail(scene_id: str) -> Response:
         """The scene's first image, else its first cluster's crop, shrunk."""
-        scene = await run_in_threadpool(_found, store.get_scene, _object_id(scene_id, "scene"))
+        scene = await stored(store.get_scene, scene_id, "scene")
         crops = (roi.crop for c in scene.clusters if (roi := c.hypothesis_of(ImageROI)))
         image = next(iter(scene.images.values()), None) or next(filter(None, crops), None)
         if image is None:
@@ -176,8 +179,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     @router.get("/img/clusters/{cluster_id}/crop")
     async def cluster_crop(cluster_id: str) -> Response:
-        cluster = await run_in_threadpool(_found, store.get_cluster,
-                                          _object_id(cluster_id, "cluster"))
+        cluster = await stored(store.get_cluster, cluster_id, "cluster")
         roi = cluster.hypothesis_of(ImageROI)
         if roi is None or roi.crop is None:
             raise PageError(404, f"cluster {cluster_id} has no crop")

@@ -1,7 +1,7 @@
 """What the templates show of stored values, decided by their types, so any annotation type,
 present or future (or unknown: kept as `Unknown`), renders without an edit here: numbers in
-[0, 1] named like a confidence as bars, name -> number maps as bar lists, arrays as small
-charts, links as links, nested models as their fields, everything else as text."""
+[0, 1] named like a confidence as bars, name -> share maps as bar lists, arrays as small
+charts, web links as links, nested models and other maps as field tables, the rest as text."""
 
 from __future__ import annotations
 
@@ -70,6 +70,8 @@ def shown(name: str, value: Any) -> Shown:
         return Shown(name, "links", [(v, _is_web_link(v)) for v in value])
     if isinstance(value, BaseModel | Unknown):
         return Shown(name, "fields", shown_fields(value))
+    if isinstance(value, Mapping) and value:  # key-values, e.g. a product's properties
+        return Shown(name, "fields", [shown(str(k), v) for k, v in value.items()])
     return Shown(name, "text", _text(value))
 
 

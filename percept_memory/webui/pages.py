@@ -1,0 +1,236 @@
+"""The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): the scene log,
+a scene with its image, cluster boxes, log, relations and annotations, a cluster, and an
+object's history. Server-rendered, no JavaScript; every page sends a Content-Security-Policy
+that allows nothing but this site's own images and style sheet. Jinja2 escapes every value, so
+OCR text, web results and annotator logs are shown, never run.
+
+URL parameters are parsed here, each bad one refused with a 404 or 422 page naming it.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+from bson import ObjectId
+from fastapi import APIRouter, FastAPI, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse, Response
+from fastapi.staticfiles import StaticFiles
+from fastapi.templating import Jinja2Templates
+from pymongo import DESCENDING
+
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.schema import EVENTS, OBJECTS
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Image, ImageROI, Scene
+
+from . import render
+from .images import display_png
+
+HERE = Path(__file__).parent
+CSP = ("default-src 'none'; img-src 'self'; style-src 'self'; form-action 'self'; "
+       "base-uri 'none'; frame-ancestors 'none'")
+PAGE_HEADERS = {"Content-Security-Policy": CSP, "X-Content-Type-Options": "nosniff"}
+SCENES_PER_PAGE = 20
+EVENTS_SHOWN = 500
+THUMB_SIDE = 160
+LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
+               # the names of the scene's images, not their pixels
+               "images": {"$map": {"input": {"$objectToArray": {"$ifNull": ["$images", {}]}},
+                                   "in": "$$this.k"}}}
+
+templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
+templates.env.filters["time"] = render.time_of
+templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields)
+
+
+class PageError(Exception):
+    """A request a page cannot answer: shown as an HTML error page with this status."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status, self.message = status, message
+
+
+def mount_pages(app: FastAPI, store: MemoryStore) -> None:
+    """Add the pages, their images and their style sheet to the app."""
+    app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
+    app.include_router(page_routes(store))
+
+    @app.exception_handler(PageError)
+    async def _page_error(request: Request, error: PageError) -> HTMLResponse:
+        return page(request, "error.html", {"error": error}, error.status)
+
+
+def page(request: Request, template: str, context: dict, status: int = 200) -> HTMLResponse:
+    return templates.TemplateResponse(request, template, context, status_code=status,
+                                      headers=PAGE_HEADERS)
+
+
+def page_routes(store: MemoryStore) -> APIRouter:
+    router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
+    objects, events = store.db[OBJECTS], store.db[EVENTS]
+
+    async def stored(get, text: str, kind: str):
+        """The stored scene or cluster an URL names, or a 404 page."""
+        return await run_in_threadpool(_found, get, _object_id(text, kind))
+
+    @router.get("/")
+    @router.get("/scenes")
+    async def scene_log(request: Request, robot: str = "", since: str = "", until: str = "",
+                        before: str = "") -> HTMLResponse:
+        """Scenes newest first, SCENES_PER_PAGE at a time; `before` is the cursor of the last
+        scene shown (its timestamp and id), so paging stays right while scenes arrive."""
+        query: dict = {}
+        if robot:
+            query["robot"] = robot
+        span = {op: _nanoseconds(text, name) for op, text, name in
+                (("$gte", since, "since"), ("$lte", until, "until")) if text}
+        if span:
+            query["timestamp"] = span
+        if before:
+            stamp, scene_id = _cursor(before)
+            query = {"$and": [query, {"$or": [
+                {"timestamp": {"$lt": stamp}}, {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
+
+        def load() -> tuple[list[dict], list[str]]:
+            found = store.scenes.find(query, LIST_FIELDS).sort(
+                [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
+            return list(found), sorted(store.scenes.distinct("robot"))
+
+        scenes, robots = await run_in_threadpool(load)
+        older = None
+        if len(scenes) > SCENES_PER_PAGE:
+            scenes = scenes[:SCENES_PER_PAGE]
+            last = scenes[-1]
+            older = dict(robot=robot, since=since, until=until,
+                         before=f"{last['timestamp']}-{last['_id']}")
+        return page(request, "scenes.html", {
+            "scenes": scenes, "robots": robots, "older": older,
+            "filters": {"robot": robot, "since": since, "until": until},
+        })
+
+    @router.get("/scenes/{scene_id}")
+    async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
+        scene = await stored(store.get_scene, scene_id, "scene")
+
+        def load() -> tuple[dict, dict]:
+            ids = [c.object_id for c in scene.clusters if c.object_id]
+            names = {o["_id"]: o.get("name") for o in objects.find({"_id": {"$in": ids}},
+                                                                    {"name": 1})}
+            explained = {e["cluster_id"]: e for e in events.find({"scene_id": scene.id})
+                         if e.get("cluster_id")}
+            return names, explained
+
+        names, explained = await run_in_threadpool(load)
+        return page(request, "scene.html", {
+            "scene": scene, "names": names, "events": explained, "boxes": _boxes(scene),
+            "log": render.log_by_annotator(scene.log),
+        })
+
+    @router.get("/clusters/{cluster_id}")
+    async def cluster_page(request: Request, cluster_id: str) -> HTMLResponse:
+        cluster = await stored(store.get_cluster, cluster_id, "cluster")
+
+        def load() -> tuple[dict | None, dict | None, list[dict]]:
+            scene = store.scenes.find_one({"_id": cluster.scene_id}, LIST_FIELDS)
+            believed = objects.find_one({"_id": cluster.object_id}) if cluster.object_id else None
+            return scene, believed, list(events.find({"cluster_id": cluster.id}))
+
+        scene, believed, explained = await run_in_threadpool(load)
+        return page(request, "cluster.html", {
+            "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
+            "object": believed, "events": explained,
+        })
+
+    @router.get("/objects/{object_id}")
+    async def object_page(request: Request, object_id: str) -> HTMLResponse:
+        key = _object_id(object_id, "object")
+
+        def load() -> tuple[dict | None, list[dict]]:
+            believed = objects.find_one({"_id": key})
+            history = events.find({"object_id": key}).sort("time", DESCENDING)
+            return believed, list(history.limit(EVENTS_SHOWN))
+
+        believed, history = await run_in_threadpool(load)
+        if believed is None:
+            raise PageError(404, f"no object {key}")
+        return page(request, "object.html", {
+            "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
+        })
+
+    @router.get("/img/scenes/{scene_id}/images/{name}")
+    async def scene_image(scene_id: str, name: str) -> Response:
+        scene = await stored(store.get_scene, scene_id, "scene")
+        if name not in scene.images:
+            raise PageError(404, f"scene {scene_id} has no image {name!r}")
+        return await _png(scene.images[name])
+
+    @router.get("/img/scenes/{scene_id}/thumb")
+    async def scene_thumbnail(scene_id: str) -> Response:
+        """The scene's first image, else its first cluster's crop, shrunk."""
+        scene = await stored(store.get_scene, scene_id, "scene")
+        crops = (roi.crop for c in scene.clusters if (roi := c.hypothesis_of(ImageROI)))
+        image = next(iter(scene.images.values()), None) or next(filter(None, crops), None)
+        if image is None:
+            raise PageError(404, f"scene {scene_id} has no image and no crop")
+        return await _png(image, THUMB_SIDE)
+
+    @router.get("/img/clusters/{cluster_id}/crop")
+    async def cluster_crop(cluster_id: str) -> Response:
+        cluster = await stored(store.get_cluster, cluster_id, "cluster")
+        roi = cluster.hypothesis_of(ImageROI)
+        if roi is None or roi.crop is None:
+            raise PageError(404, f"cluster {cluster_id} has no crop")
+        return await _png(roi.crop)
+
+    return router
+
+
+async def _png(image: Image, max_side: int | None = None) -> Response:
+    data = await run_in_threadpool(display_png, image, max_side)
+    return Response(data, media_type="image/png",
+                    headers={"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"})
+
+
+def _boxes(scene: Scene) -> dict[str, list[tuple[int, ImageROI]]]:
+    """Per scene image, the numbered (from 1, in cluster order) regions of the clusters."""
+    boxes: dict[str, list[tuple[int, ImageROI]]] = {name: [] for name in scene.images}
+    for number, cluster in enumerate(scene.clusters, 1):
+        roi = cluster.hypothesis_of(ImageROI)
+        if roi is not None and roi.image in boxes:
+            boxes[roi.image].append((number, roi))
+    return boxes
+
+
+def _found(get, key: ObjectId):
+    try:
+        return get(key)
+    except NotFound as error:
+        raise PageError(404, str(error)) from None
+
+
+def _object_id(text: str, kind: str) -> ObjectId:
+    if not ObjectId.is_valid(text):
+        raise PageError(404, f"no {kind} {text!r}: ids are 24 hexadecimal digits")
+    return ObjectId(text)
+
+
+def _nanoseconds(text: str, name: str) -> int:
+    """An ISO 8601 date or time (UTC unless it says otherwise) as nanoseconds since the epoch."""
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError:
+        raise PageError(422, f"{name}: {text!r} is not a date or time such as "
+                             "2024-05-06T08:30") from None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return int(moment.timestamp() * 1_000_000) * 1000
+
+
+def _cursor(text: str) -> tuple[int, ObjectId]:
+    stamp, _, scene_id = text.partition("-")
+    if not stamp.isdigit() or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
+        raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
+    return int(stamp), ObjectId(scene_id)

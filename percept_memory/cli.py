@@ -34,6 +34,8 @@ from percept_memory.memory.settings import Settings, settings_help
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QUERIES, QueryEngine
+from percept_memory.queries.export.model import ExportQuery
+from percept_memory.queries.export.run import Export
 from percept_memory.queries.params import from_params, is_list
 from percept_memory.webui.app import create_app
 
@@ -402,9 +404,9 @@ def query() -> None:
     the HTTP API's query string (see /docs)."""
 
 
-def _query_command(name: str, model: type[BaseModel]) -> click.Command:
-    """A subcommand whose options are the query model's fields (its required first field an
-    argument), read by the same parser as the HTTP query string."""
+def model_params(model: type[BaseModel]) -> list[click.Parameter]:
+    """A model's fields as options (its required fields as arguments), to be read by the
+    same parser as the HTTP query string (model_from_options)."""
     params: list[click.Parameter] = []
     for field, info in model.model_fields.items():
         if info.is_required():
@@ -415,13 +417,24 @@ def _query_command(name: str, model: type[BaseModel]) -> click.Command:
         else:
             params.append(click.Option([f"--{field.replace('_', '-')}", field],
                                        multiple=is_list(model, field), help=info.description))
+    return params
+
+
+def model_from_options(model: type[BaseModel], given: dict[str, Any]) -> BaseModel:
+    pairs = [(field, str(value).lower() if isinstance(value, bool) else str(value))
+             for field, values in given.items() if values is not None
+             for value in (values if isinstance(values, tuple) else (values,))]
+    return from_params(model, pairs)
+
+
+def _query_command(name: str, model: type[BaseModel]) -> click.Command:
+    """A subcommand whose options are the query model's fields (its required first field an
+    argument), read by the same parser as the HTTP query string."""
+    params = model_params(model)
 
     @click.pass_obj
     def run(settings: Settings, **given: Any) -> None:
-        pairs = [(field, str(value).lower() if isinstance(value, bool) else str(value))
-                 for field, values in given.items() if values is not None
-                 for value in (values if isinstance(values, tuple) else (values,))]
-        question = from_params(model, pairs)
+        question = model_from_options(model, given)
         with MemoryStore.open(settings) as store:
             answer = getattr(QueryEngine(store, settings), name)(question)
         click.echo(json.dumps(TypeAdapter(Any).dump_python(answer, mode="json"), indent=2))
@@ -432,3 +445,34 @@ def _query_command(name: str, model: type[BaseModel]) -> click.Command:
 
 for _name, (_model, _plan) in QUERIES.items():
     query.add_command(_query_command(_name, _model))
+
+
+# --- pmem export: training data ----------------------------------------------------------------
+
+
+@click.pass_obj
+def _export(settings: Settings, out: Path, **given: Any) -> None:
+    query = model_from_options(ExportQuery, given)
+    with MemoryStore.open(settings) as store:
+        export = Export(store, query, settings)
+        with Progress(TextColumn(f"[bold]export {query.format}"), BarColumn(),
+                      MofNCompleteColumn(), TimeElapsedColumn(), console=Console(stderr=True),
+                      transient=True) as bar:
+            task = bar.add_task("clusters", total=export.total)
+            try:
+                summary = export.save(out, lambda done: bar.advance(task, done))
+            except FileExistsError as error:
+                raise click.ClickException(str(error)) from None
+    skipped = ", ".join(f"{count} {reason}" for reason, count in sorted(summary.skipped.items()))
+    click.echo(f"exported {summary.exported} clusters to {out}"
+               + (f" (skipped: {skipped})" if skipped else ""))
+
+
+main.add_command(click.Command(
+    "export", callback=_export,
+    params=[*model_params(ExportQuery),
+            click.Option(["--out"], required=True, type=click.Path(path_type=Path),
+                         help="a .zip file, or a new folder")],
+    help="Export the clusters a query selects as training data: FORMAT is coco, yolo, "
+         "imagefolder or jsonl. The query options are those of `pmem query clusters`; each "
+         "export holds provenance.jsonl and manifest.json (see README: Export)."))

@@ -256,6 +256,10 @@ class MemoryStore(StoreBase):
     def get_blob(self, blob_id: str) -> bytes:
         return self._blobs_by_id([blob_id])[blob_id]
 
+    def get_blobs(self, blob_ids: Sequence[str]) -> dict[str, bytes]:
+        """Several blobs at once, by id."""
+        return self._blobs_by_id(list(blob_ids))
+
     def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
         for blob_id, data in blobs.items():
             if self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:

@@ -27,9 +27,9 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from .queries import query_router
-
+from .export_api import export_router
 from .pages import mount_pages
+from .queries import query_router
 
 
 class ApiError(Exception):
@@ -109,6 +109,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         ]}
 
     app.include_router(query_router(QueryEngine(store, settings)))
+    app.include_router(export_router(store, settings))
 
     @app.get("/api/jobs", summary="The enrichment queue: jobs per state, the latest jobs")
     def list_jobs(state: State | None = None,

@@ -46,12 +46,12 @@ def _add_routes(router: APIRouter, run, model: type[BaseModel], plan, path: str)
         return await run_in_threadpool(_answered, run, query)
 
     async def answer_json_body(query: Annotated[model, Body()],  # type: ignore[valid-type]
-                               _: Annotated[None, Depends(_small_body)]) -> Any:
+                               _: Annotated[None, Depends(small_body)]) -> Any:
         return await run_in_threadpool(_answered, run, query)
 
     router.add_api_route(path, answer_query_string, methods=["GET"], response_model=answer,
                          summary=summary, description=doc,
-                         openapi_extra={"parameters": _parameters(model)},
+                         openapi_extra={"parameters": query_parameters(model)},
                          operation_id=f"get_{path.strip('/').replace('/', '_')}")
     router.add_api_route(path, answer_json_body, methods=["POST"], response_model=answer,
                          summary=f"{summary} (JSON body)", description=doc,
@@ -67,13 +67,13 @@ def _answered(run, query: BaseModel) -> Any:
         raise HTTPException(422, str(error)) from None
 
 
-def _small_body(request: Request) -> None:
+def small_body(request: Request) -> None:
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > MAX_QUERY_BYTES:
         raise HTTPException(413, f"a query body is at most {MAX_QUERY_BYTES} bytes")
 
 
-def _parameters(model: type[BaseModel]) -> list[dict]:
+def query_parameters(model: type[BaseModel]) -> list[dict]:
     """The query-string parameters of a model, for the OpenAPI description."""
     return [{"name": name, "in": "query", "required": info.is_required(),
              "description": (info.description or "") + (" (repeatable)" if is_list(model, name)

@@ -1,0 +1,91 @@
+"""An export from start to end: select, label, write, and say what was left out.
+
+    export = Export(store, ExportQuery(format="coco", region=["table"]))
+    export.total                         # clusters selected (the query is checked here)
+    for chunk in export.zip_stream(): ...  # the zip, a chunk at a time
+    export.save(Path("out.zip"))         # or a folder: export.save(Path("out"))
+
+`manifest.json` records the format, the label source, the query, how many clusters were
+exported, how many were skipped and why, and the classes in id order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+
+from .archive import Archive, ChunkSink, FolderArchive, ZipArchive, add_json
+from .coco import Coco
+from .imagefolder import ImageFolder
+from .jsonl import Jsonl
+from .labels import label_of
+from .model import ExportQuery
+from .selection import Selection
+from .writer import Item, Summary, Writer
+from .yolo import Yolo
+
+WRITERS: dict[str, type[Writer]] = {"coco": Coco, "yolo": Yolo, "imagefolder": ImageFolder,
+                                    "jsonl": Jsonl}
+PIXELS = {"imagefolder": "crops", "jsonl": None}  # coco and yolo: the query's `images`
+
+
+class Export:
+    def __init__(self, store: MemoryStore, query: ExportQuery, settings: Settings | None = None):
+        self.query = query
+        self.selection = Selection(store, query, (settings or Settings()).query_timeout_ms,
+                                   PIXELS.get(query.format, query.images))
+        self.total = self.selection.count()
+        self.summary = Summary()
+
+    def write(self, archive: Archive) -> Iterator[int]:
+        """Write the export into `archive`, yielding how many clusters each step handled."""
+        writer = WRITERS[self.query.format](archive, self.query, self.summary)
+        for group in self.selection.groups():
+            items = []
+            for cluster in group.clusters:
+                label = label_of(cluster, self.query.label, group.object_names)
+                if label is None:
+                    writer.skip(f"no {self.query.label} label")
+                else:
+                    items.append(Item(group.scene, cluster, label))
+            writer.add(items)
+            yield len(group.clusters)
+        writer.finish()
+        add_json(archive, "manifest.json", self._manifest(writer))
+
+    def zip_stream(self) -> Iterator[bytes]:
+        """The export as a zip, chunk by chunk, as it is written."""
+        sink = ChunkSink()
+        archive = ZipArchive(sink)
+        for _ in self.write(archive):
+            yield from sink.drain()
+        archive.close()
+        yield from sink.drain()
+
+    def save(self, path: Path, progress: Callable[[int], None] = lambda done: None) -> Summary:
+        """Write the export to a zip file (a path ending in .zip) or a new folder."""
+        if path.suffix.lower() == ".zip":
+            with path.open("xb") as file:
+                self._save(ZipArchive(file), progress)
+        else:
+            self._save(FolderArchive(path), progress)
+        return self.summary
+
+    def _save(self, archive, progress: Callable[[int], None]) -> None:
+        for done in self.write(archive):
+            progress(done)
+        archive.close()
+
+    def _manifest(self, writer: Writer) -> dict:
+        return {
+            "format": self.query.format,
+            "label": self.query.label,
+            "images": self.query.images,
+            "query": self.query.model_dump(mode="json", exclude_defaults=True),
+            "exported": self.summary.exported,
+            "skipped": dict(sorted(self.summary.skipped.items())),
+            "classes": list(writer.classes),
+        }

@@ -1,0 +1,123 @@
+"""What every format shares: the items to write, class ids, the provenance sidecar, the
+pictures (scene images or crops) with the clusters' boxes, and the count of what was skipped."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+from percept_memory.memory.types import Cluster, Scene, datetime_from_timestamp
+
+from . import pixels
+from .archive import Archive, Spool
+from .labels import Label
+from .model import ExportQuery
+
+PROVENANCE = "provenance.jsonl"
+
+
+@dataclass(frozen=True)
+class Item:
+    """A selected cluster with its label, in its scene."""
+
+    scene: Scene
+    cluster: Cluster
+    label: Label
+
+
+@dataclass
+class Summary:
+    exported: int = 0
+    skipped: Counter = field(default_factory=Counter)  # reason -> clusters
+
+
+@dataclass
+class Picture:
+    """An image to export and the objects in it."""
+
+    stem: str  # the file name without extension: a scene id and image name, or a cluster id
+    png: bytes
+    instances: list[tuple[Item, pixels.Instance]]
+
+
+class Writer:
+    """Base of the formats. `add` takes a scene's items, `finish` writes what is left."""
+
+    def __init__(self, archive: Archive, query: ExportQuery, summary: Summary):
+        self.archive, self.query, self.summary = archive, query, summary
+        self.provenance = Spool()
+        self.classes: dict[str, int] = {}  # label -> class id, in order of first appearance
+
+    def add(self, items: list[Item]) -> None:
+        raise NotImplementedError
+
+    def finish(self) -> None:
+        """The format's own entries at the end; then the provenance sidecar."""
+        self.archive.add(PROVENANCE, self.provenance.chunks(), self.provenance.size)
+
+    def class_id(self, label: Label) -> int:
+        return self.classes.setdefault(label.name, len(self.classes))
+
+    def exported(self, item: Item, ref: dict) -> None:
+        """Count the item and write its provenance, `ref` saying where it is in the export."""
+        self.summary.exported += 1
+        self.provenance.line({**ref, **provenance(item)})
+
+    def skip(self, reason: str, count: int = 1) -> None:
+        self.summary.skipped[reason] += count
+
+    def pictures(self, items: list[Item]) -> Iterator[Picture]:
+        """Scene images with every item's box in them, or each item's crop (query.images)."""
+        if self.query.images == "scenes":
+            yield from self._scene_pictures(items)
+            return
+        for item in items:
+            found = pixels.crop_of(item.cluster, item.scene)
+            if found is None:
+                self.skip("no crop and no scene image")
+            elif (data := pixels.png(found[1])) is None:
+                self.skip("the crop is not an 8 or 16-bit image")
+            else:
+                yield Picture(str(item.cluster.id), data,
+                              [(item, pixels.in_crop(found[0], found[1]))])
+
+    def _scene_pictures(self, items: list[Item]) -> Iterator[Picture]:
+        by_image: dict[str, list[tuple[Item, pixels.Instance]]] = {}
+        for item in items:
+            roi = pixels.scene_roi(item.cluster, item.scene)
+            if roi is None:
+                self.skip("the scene has no image the cluster's box is in")
+            elif (instance := pixels.in_scene(roi, item.scene.images[roi.image])) is None:
+                self.skip("the cluster's box lies outside its image")
+            else:
+                by_image.setdefault(roi.image, []).append((item, instance))
+        for name, instances in by_image.items():
+            scene = instances[0][0].scene
+            data = pixels.png(scene.images[name])
+            if data is None:
+                self.skip("the scene image is not an 8 or 16-bit image", len(instances))
+            else:
+                yield Picture(f"{scene.id}_{name}", data, instances)
+
+
+def provenance(item: Item) -> dict:
+    """Where a training example came from: scene, time, camera pose, place, label source."""
+    scene, cluster, label = item.scene, item.cluster, item.label
+    pose = scene.camera_pose
+    return {
+        "cluster_id": str(cluster.id),
+        "scene_id": str(scene.id),
+        "object_id": None if cluster.object_id is None else str(cluster.object_id),
+        "robot": scene.robot,
+        "frame": scene.frame,
+        "time": scene.timestamp,
+        "time_utc": datetime_from_timestamp(scene.timestamp).isoformat(),
+        "camera_pose": None if pose is None else pose.model_dump(
+            mode="json", include={"translation", "rotation", "frame", "child_frame", "stamp"}),
+        "region": cluster.region,
+        "position": cluster.position,
+        "label": label.name,
+        "annotator": label.annotator,
+        "annotation_id": None if label.annotation_id is None else str(label.annotation_id),
+    }

@@ -1,0 +1,62 @@
+"""GET and POST /api/export: the clusters a query selects, as training data in a zip that is
+streamed while it is written. The query (format, label source, filter) is checked before the
+first byte is sent, so a bad one gets the app's one error format (422), not a broken zip."""
+
+# no `from __future__ import annotations`: FastAPI reads the endpoints' annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Depends, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import StreamingResponse
+from pydantic import ValidationError
+from starlette.exceptions import HTTPException
+
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+from percept_memory.queries.export.model import ExportQuery
+from percept_memory.queries.export.run import Export
+from percept_memory.queries.ops import QueryError
+from percept_memory.queries.params import from_params
+
+from .queries import query_parameters, small_body
+
+DESCRIPTION = (ExportQuery.__doc__ or "") + (
+    " Formats: coco (annotations.json + images/), yolo (images/, labels/, data.yaml), "
+    "imagefolder (<label>/<cluster id>.png) and jsonl (features.jsonl); each with "
+    "provenance.jsonl (scene, time, camera pose, region, annotator of the label) and "
+    "manifest.json (counts, what was skipped and why). Same store and query, same bytes.")
+ZIP = {200: {"content": {"application/zip": {}}, "description": "the export as a zip"}}
+
+
+def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
+    router = APIRouter(prefix="/api", tags=["export"])
+
+    def started(query: ExportQuery) -> StreamingResponse:
+        try:
+            export = Export(store, query, settings)
+        except QueryError as error:
+            raise HTTPException(422, str(error)) from None
+        return StreamingResponse(
+            export.zip_stream(), media_type="application/zip",
+            headers={"Content-Disposition": f'attachment; filename="pmem-{query.format}.zip"',
+                     "X-Clusters-Selected": str(export.total)})
+
+    @router.get("/export", summary="Export training data (query string)",
+                description=DESCRIPTION, response_class=StreamingResponse, responses=ZIP,
+                openapi_extra={"parameters": query_parameters(ExportQuery)})
+    async def export_by_query_string(request: Request) -> StreamingResponse:
+        try:
+            query = from_params(ExportQuery, request.query_params.multi_items())
+        except ValidationError as error:
+            raise RequestValidationError(error.errors(include_url=False)) from None
+        return await run_in_threadpool(started, query)
+
+    @router.post("/export", summary="Export training data (JSON body)",
+                 description=DESCRIPTION, response_class=StreamingResponse, responses=ZIP)
+    async def export_by_json_body(query: Annotated[ExportQuery, Body()],
+                                  _: Annotated[None, Depends(small_body)]) -> StreamingResponse:
+        return await run_in_threadpool(started, query)
+
+    return router

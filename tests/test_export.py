@@ -242,8 +242,10 @@ def test_the_same_store_and_query_give_the_same_bytes(memory):
 def test_the_zip_streams_as_it_is_written(memory):
     chunks = list(Export(memory, ExportQuery(format="imagefolder", robot=["pr2"],
                                              limit=400)).zip_stream())
-    assert len(chunks) > 400  # at least one chunk per crop, handed on as written
-    assert max(map(len, chunks)) < 2**20
+    archive = zipfile.ZipFile(io.BytesIO(b"".join(chunks)))
+    scenes = {p["scene_id"] for p in lines(archive, "provenance.jsonl")}
+    assert len(chunks) >= len(scenes) > 50  # handed on scene by scene, as written
+    assert max(map(len, chunks)) <= 2**20
 
 
 def test_clusters_without_a_label_from_the_source_are_skipped_and_counted(memory):

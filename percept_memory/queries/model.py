@@ -84,7 +84,7 @@ Finite = Annotated[float, Field(allow_inf_nan=False)]
 Point = Annotated[tuple[Finite, Finite, Finite], _numbers(3, "a point x,y,z")]
 
 
-def _listed(value: Any) -> Any:
+def listed(value: Any) -> Any:
     """One value where a list is expected is a list of one."""
     return [value] if isinstance(value, str | int | float | dict) else value
 
@@ -288,18 +288,18 @@ class ClusterFilter(Strict):
 
     text: Annotated[str, StringConstraints(max_length=MAX_TEXT)] | None = Field(
         default=None, description='words and "quoted phrases"; misspellings are tolerated')
-    region: Annotated[list[Name], BeforeValidator(_listed), Field(max_length=MAX_LIST)] = Field(
+    region: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="region names (any of them)")
-    robot: Annotated[list[Name], BeforeValidator(_listed), Field(max_length=MAX_LIST)] = Field(
+    robot: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="robot names (any of them)")
-    object: Annotated[list[Id], BeforeValidator(_listed), Field(max_length=MAX_LIST)] = Field(
+    object: Annotated[list[Id], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="object ids (any of them)")
     box: Box | None = Field(default=None, description="x0,y0,z0,x1,y1,z1 in the map frame")
     sphere: Sphere | None = Field(default=None, description="x,y,z,radius in the map frame")
     after: Time | None = Field(default=None, description="at or after this time")
     before: Time | None = Field(default=None, description="at or before this time")
     at: Time | None = Field(default=None, description="exactly at this time (a scene's)")
-    where: Annotated[list[Predicate], BeforeValidator(_listed),
+    where: Annotated[list[Predicate], BeforeValidator(listed),
                      Field(max_length=MAX_PREDICATES)] = Field(
         default=[], description="annotation field predicates, type:field<op>value (all hold)")
 

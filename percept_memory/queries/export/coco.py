@@ -43,14 +43,21 @@ class Coco(Writer):
         self.exported(item, {"annotation_id": annotation_id, "image_id": image_id})
 
     def finish(self) -> None:
+        """annotations.json, put together from the spooled lists."""
         categories = [{"id": i + 1, "name": name, "supercategory": ""}
                       for name, i in self.classes.items()]
-        parts = [b'{"info":' + json.dumps(INFO, sort_keys=True).encode() +
-                 b',"licenses":[],"images":[', None, b'],"annotations":[', None,
-                 b'],"categories":' + json.dumps(categories).encode() + b"}\n"]
-        spools = iter((self.images, self.annotations))
-        chunks = [part if part is not None else next(spools) for part in parts]
-        size = sum(len(c) if isinstance(c, bytes) else c.size for c in chunks)
-        self.archive.add("annotations.json", (piece for c in chunks for piece in (
-            [c] if isinstance(c, bytes) else c.chunks())), size)
+        head = b'{"info":' + json.dumps(INFO, sort_keys=True).encode() + \
+            b',"licenses":[],"images":['
+        middle = b'],"annotations":['
+        tail = b'],"categories":' + json.dumps(categories).encode() + b"}\n"
+
+        def chunks():
+            yield head
+            yield from self.images.chunks()
+            yield middle
+            yield from self.annotations.chunks()
+            yield tail
+
+        self.archive.add("annotations.json", chunks(), len(head) + self.images.size +
+                         len(middle) + self.annotations.size + len(tail))
         super().finish()

@@ -6,7 +6,7 @@ from typing import Annotated, Literal
 
 from pydantic import BeforeValidator, Field, model_validator
 
-from percept_memory.queries.model import MAX_LIST, ClusterFilter, Name, _listed
+from percept_memory.queries.model import MAX_LIST, ClusterFilter, Name, listed
 
 Format = Literal["coco", "yolo", "imagefolder", "jsonl"]
 LabelSource = Literal["classification", "detection", "ground_truth", "object", "text"]
@@ -25,7 +25,7 @@ class ExportQuery(ClusterFilter):
     images: ImageMode | None = Field(
         default=None, description="coco and yolo: whole scene images with the clusters' "
                                   "boxes (default), or each cluster's crop as an image")
-    feature: Annotated[list[Name], BeforeValidator(_listed), Field(max_length=MAX_LIST)] = Field(
+    feature: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="jsonl: feature vector names (VFH, Caffe, color_histogram); "
                                 "all a cluster has if none given")
     limit: Annotated[int, Field(ge=1)] | None = Field(

@@ -23,7 +23,7 @@ from percept_memory.queries.clusters import compiled, find_clusters
 from percept_memory.queries.model import ClusterQuery
 from percept_memory.queries.ops import Count, Runner
 
-from .model import ExportQuery
+from .model import ExportQuery, ImageMode
 
 PAGE = 200
 SCENE_FIELDS = ("_type", "timestamp", "robot", "frame", "camera_pose", "camera")
@@ -43,8 +43,8 @@ class Selection:
     """The clusters of an export query, read with the engine's time limit per operation."""
 
     def __init__(self, store: MemoryStore, query: ExportQuery, limit_ms: int,
-                 scene_images: bool):
-        self.store, self.query, self.scene_images = store, query, scene_images
+                 pixels: ImageMode | None):
+        self.store, self.query, self.pixels = store, query, pixels
         self.runner = Runner(store.db, limit_ms)
         self.pages = ClusterQuery(**dict(query.cluster_filter()), sort="oldest", limit=PAGE)
 
@@ -95,11 +95,14 @@ class Selection:
 
     def _scenes(self, clusters: list[Cluster]) -> dict[ObjectId, Scene]:
         """The scenes of the clusters, without clouds and clusters, with the images the
-        clusters' boxes refer to when whole scene images are exported."""
+        clusters' boxes are in: all of them for scene images, for crops those of the clusters
+        that have no crop stored (it is cut from the image)."""
         projection = dict.fromkeys(SCENE_FIELDS, 1)
-        if self.scene_images:
-            projection |= {f"images.{roi.image}": 1 for c in clusters for roi in c.hypotheses
-                           if isinstance(roi, ImageROI)}
+        for cluster in clusters:
+            rois = [h for h in cluster.hypotheses if isinstance(h, ImageROI)]
+            if self.pixels == "scenes" or (self.pixels == "crops" and
+                                           all(roi.crop is None for roi in rois)):
+                projection |= {f"images.{roi.image}": 1 for roi in rois}
         found = list(self.store.db[SCENES].find(
             {"_id": {"$in": list({c.scene_id for c in clusters})}}, projection))
         blobs = self.store.get_blobs(sorted({ref for doc in found for ref in _blobs(doc)}))

@@ -1,7 +1,8 @@
 """Where an export's entries go: a zip written as a stream of chunks, or a folder.
 
 The zip is written with the standard library onto a sink that keeps only the bytes not yet
-handed on, so it streams whatever its size. Every header field is fixed (time 1980-01-01,
+handed on, so it streams whatever its size; the list of entries the zip ends with waits on
+disk, not in memory. Every header field is fixed (time 1980-01-01,
 permissions, system), so the same entries give the same bytes. Images are stored as they are
 (PNG is compressed already), text is deflated.
 
@@ -44,8 +45,7 @@ class ZipArchive:
     def __init__(self, stream):
         self.zip = zipfile.ZipFile(_WriteOnly(stream), "w", allowZip64=True)
         self.zip.filelist = _EntriesOnDisk()  # what the central directory at the end lists
-        self.zip.NameToInfo = _Forgetful()  # only for warnings about repeated names; ours
-        # are unique (cluster and scene ids)
+        self.zip.NameToInfo = _Forgetful()  # kept to warn of repeated names: ours are unique
 
     def add(self, name: str, chunks: Iterable[bytes], size: int) -> None:
         info = zipfile.ZipInfo(name, FIXED_TIME)

@@ -27,9 +27,8 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from .queries import query_router
-
 from .pages import mount_pages
+from .queries import query_router
 
 
 class ApiError(Exception):

@@ -58,8 +58,8 @@ class Parameters:
     proximity_sigma: float = 0.05
     # Odds of the explanations, tuned on the thesis' synthetic protocol at its four noise
     # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0).
-    prior_move: float = 0.1138  # odds that an object moved between two looks at it
-    prior_newview: float = 0.2527  # odds that the same place shows another side of it
+    prior_move: float = 0.0338  # odds that an object moved between two looks at it
+    prior_newview: float = 0.3032  # odds that the same place shows another side of it
     prior_appear: float = 4.1028  # odds of "a new object" against a known one
     prior_gone: float = 2.575  # odds of "an object in view is not there any more"
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
@@ -75,7 +75,7 @@ class Parameters:
     place_different: float = 0.1
     prior_weight: float = 10.0
     memory: float = 500.0
-    confident: float = 0.2034  # decisions at least this likely teach it what differs
+    confident: float = 0.1424  # decisions at least this likely teach it what differs
 
 
 @dataclass

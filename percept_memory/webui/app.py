@@ -27,9 +27,8 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from .queries import query_router
-
 from .pages import mount_pages
+from .queries import query_router
 
 
 class ApiError(Exception):
@@ -58,7 +57,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
-    mount_pages(app, store)  # the HTML pages (pages.py)
+    mount_pages(app, store, settings)  # the HTML pages (pages.py)
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:

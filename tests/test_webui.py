@@ -14,15 +14,17 @@ import socket
 import threading
 import time
 from collections import Counter
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 import uvicorn
 from bson import ObjectId
 from fastapi.testclient import TestClient
 from playwright.sync_api import Page, expect, sync_playwright
 
-from percept_memory.ingest import kitchen_week
+from percept_memory.ingest import kitchen_week, synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.consolidation import Consolidator
@@ -36,6 +38,8 @@ from percept_memory.memory.types import (
     Text,
     WebLookup,
 )
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 
 from .conftest import ROBOSHERLOCK
@@ -65,13 +69,16 @@ def hostile():
     roi = ImageROI(box=(0, 0, 2, 2))
     cluster = Cluster(hypotheses=[roi], annotations=[
         Text(text=HOSTILE, source="OCRAnnotator"),
-        Classification(class_name=HOSTILE, confidence=0.5),
+        Classification(class_name=HOSTILE, confidence=0.5, source="SVMClassifier"),
+        Classification(class_name="cup", confidence=0.9, source="MalloryNet"),
         WebLookup(category="text", title="evil", links=["javascript:alert(1)",
                                                         "https://example.org/a?b=<i>"]),
         {"_type": "rs.annotation.Segment", "label": "<b>bold</b>", "score": 0.25},  # unknown
     ])
     return Scene(timestamp=HOSTILE_STAMP, robot="mallory", clusters=[cluster],
-                 log=[LogLine(source="OCRAnnotator", message=f"read {HOSTILE}")])
+                 log=[LogLine(source="OCRAnnotator", message=f"read {HOSTILE}"),
+                      LogLine(source="OCRAnnotator", level="error",
+                              message=f"could not read {HOSTILE}")])
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +86,24 @@ def filled(store, week, sample, hostile):
     items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
     list(IngestService(store, after_store=[Consolidator(store)]).ingest_stream(items))
     store.put_scenes([sample, hostile])  # not consolidated: clusters without an object
+    store.db.jobs.insert_many(lookups(week))
     return store
+
+
+def lookups(week) -> list[dict]:
+    """Enrichment jobs as workers leave them (ingest/jobs.py): three lookups done, two of them
+    answered by the cache, and one failed with a hostile error."""
+    at = datetime(2024, 3, 11, tzinfo=UTC)
+    clusters = [c.id for scene in week.scenes for c in scene.clusters][:4]
+    done = [{"kind": "lookup", "cluster_id": c, "state": "done", "attempts": 1,
+             "created": at, "updated": at + timedelta(seconds=i), "worker": "w1",
+             "outcome": {"backend": "simulated", "cached": i > 0, "hash_distance": i or None,
+                         "latency_ms": 900.0 if i == 0 else 1.5, "findings": 2,
+                         "annotations": 3}}
+            for i, c in enumerate(clusters[:3])]
+    failed = {"kind": "lookup", "cluster_id": clusters[3], "state": "failed", "attempts": 5,
+              "created": at, "updated": at, "worker": "w2", "error": f"HTTP 500: {HOSTILE}"}
+    return [*done, failed]
 
 
 @pytest.fixture(scope="module")
@@ -192,10 +216,88 @@ def test_scene_log_to_scene_to_cluster_to_object_and_back(page, url, store, week
     images_decode(page)
     shot(page, "4-object")
 
+    search_for_cereal(page, url, store, week)
+    map_at_a_past_time(page, url, store, week)
+
+    for back_to in (r"/map$", r"/search\?.*text=cereal.*view=list", r"/search\?.*text=cereal",
+                    r"/search$", rf"/objects/{believed['_id']}$"):
+        page.go_back()
+        expect(page).to_have_url(re.compile(back_to))
     page.go_back()
     expect(page).to_have_url(f"{url}/clusters/{cluster.id}")
     page.go_back()
     expect(page).to_have_url(f"{url}/scenes/{scene.id}")
+
+
+def truth_of(week) -> dict[ObjectId, str]:
+    """Cluster id -> the kitchen week object it shows (ground truth)."""
+    return {cluster.id: week.truth.object_at(i, j) for i, scene in enumerate(week.scenes)
+            for j, cluster in enumerate(scene.clusters)}
+
+
+def search_for_cereal(page: Page, url: str, store, week) -> None:
+    """Search from the navigation bar: the kitchen week's cereal box is found, as a grid of
+    crops and as a list, and the URL holds the query."""
+    page.get_by_role("link", name="Search", exact=True).click()
+    page.get_by_label("Text", exact=True).fill("cereal")
+    page.get_by_role("button", name="Search").click()
+    expect(page).to_have_url(re.compile(r"/search\?.*text=cereal"))
+    expected = QueryEngine(store).clusters(text="cereal", limit=search.PAGE_SIZE).items
+    hits = page.locator("ul.grid li.hit")
+    expect(hits).to_have_count(len(expected))
+    shown = [ObjectId(hits.nth(i).get_attribute("data-cluster")) for i in range(len(expected))]
+    assert shown == [hit.id for hit in expected]
+    truth = truth_of(week)
+    kinds = Counter(truth[c].partition("#")[0] for c in shown)
+    assert kinds["corn_flakes"] > 0, kinds  # the cereal box; tea is sometimes taken for cereal
+    assert set(kinds) <= {"corn_flakes", "tea"}, kinds
+    images_decode(page)
+    shot(page, "6-search-grid")
+
+    page.get_by_role("link", name="list", exact=True).click()
+    expect(page.locator("table.results tbody tr.hit")).to_have_count(len(expected))
+    expect(page).to_have_url(re.compile(r"view=list"))
+    shot(page, "7-search-list")
+
+
+def past_moment(store, week) -> tuple[int, list[ObjectId], ObjectId]:
+    """A moment just after scene k of the week, the objects that scene saw (believed present
+    then), and an object seen before on another surface and still there by the ground truth,
+    out of view at that moment: believed hidden. Unique objects only (no identical cups)."""
+    truth = week.truth
+    for k in range(10, len(week.scenes)):
+        t = -(-week.scenes[k].timestamp // 10**9) * 10**9  # the slider moves by whole seconds
+        here = truth.scenes[k].region
+        for j in range(k - 1, -1, -1):
+            if truth.scenes[j].region == here:
+                continue
+            unique = [(i, o) for i, o in enumerate(truth.scenes[j].objects)
+                      if kitchen_week.item_of(o).count == 1
+                      and truth.where_at(o, t) == truth.scenes[j].region]
+            if unique:
+                present = [store.get_cluster(c.id).object_id for c in week.scenes[k].clusters]
+                hidden = store.get_cluster(week.scenes[j].clusters[unique[0][0]].id).object_id
+                return t, present, hidden
+    raise AssertionError("the week has no such moment")
+
+
+def map_at_a_past_time(page: Page, url: str, store, week) -> None:
+    """The map at a past moment picked with the time slider: what was seen then drawn as
+    present, an object out of view then drawn as hidden, each a link to its page."""
+    t, present, hidden = past_moment(store, week)
+    page.get_by_role("link", name="Map", exact=True).click()
+    page.locator("input[name=at]").fill(str(t // 10**9))
+    page.get_by_role("button", name="Show").click()
+    expect(page).to_have_url(f"{url}/map?at={t // 10**9}")
+    expect(page.locator("h1 small")).to_contain_text(render.time_of(t))
+    for object_id in present:
+        expect(page.locator(f'a.object.present[data-object="{object_id}"]')).to_have_count(1)
+    drawn = page.locator(f'a.object.hidden[data-object="{hidden}"]')
+    expect(drawn).to_have_count(1)
+    name = store.db.objects.find_one({"_id": hidden})["name"]
+    expect(drawn.locator("text")).to_have_text(name)
+    expect(page.locator(f'table.believed tr.hidden a[href="/objects/{hidden}"]')).to_have_count(1)
+    shot(page, "8-map")
 
 
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
@@ -214,6 +316,22 @@ def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
     page.locator("a.box").nth(1).click()
     expect(page).to_have_url(f"{url}/scenes/{sample.id}#cluster-2")
     shot(page, "5-scene-image")
+
+
+def test_live_page_shows_new_scenes_without_reload(page, url, store):
+    page.goto(url + "/live")
+    expect(page.locator("#live-status")).to_have_text(re.compile("^Live"))
+    rows = page.locator("tr.scene")
+    expect(rows).to_have_count(live.SHOWN)
+    arrived = synthetic.scene(np.random.default_rng(7), HOSTILE_STAMP - 3600 * 10**9,
+                              clusters=3, robot="live-bot")
+    store.put_scene(arrived)  # older than every scene: the other tests' pages stay the same
+    row = page.locator(f'tr.scene.new[data-scene="{arrived.id}"]')
+    expect(row).to_be_visible()
+    expect(rows.first).to_have_attribute("data-scene", str(arrived.id))
+    expect(row.locator("td.clusters")).to_have_text("3")
+    expect(rows).to_have_count(live.SHOWN)
+    shot(page, "9-live")
 
 
 def test_keyboard_reaches_the_content(page, url):
@@ -306,6 +424,4 @@ def test_filters_by_robot_and_time(client, week):
 
 def kitchen_week_time(stamp: int) -> str:
     """The ISO form of a timestamp the filter form sends (microseconds are enough here)."""
-    from datetime import UTC, datetime
-
     return datetime.fromtimestamp(stamp / 1e9, UTC).replace(tzinfo=None).isoformat()

@@ -1,8 +1,10 @@
 """The map page: a top-down SVG of the regions and of the objects believed there at any moment
 (QueryEngine.what_is_at: an object's belief at t is its last event at or before t), present
 objects solid, hidden ones (out of view, still believed there) dashed and grey, each a link
-to its page and labelled with its name. A plain GET form with a time slider picks the moment;
-links step to the scene before and after it.
+to its page and labelled with its name. The moment is `t` (nanoseconds since the epoch or ISO
+8601, as in the query model) or `at`, whole seconds since the epoch: the time slider's value,
+since a browser sends a range input's large values in exponent form. A plain GET form with the
+slider picks the moment; links step to the scene before and after it.
 
 The store keeps no outlines of regions, so a region is drawn as the box around the positions
 of its most recent observations (REGION_SAMPLE clusters each, by the region index).
@@ -25,7 +27,7 @@ from percept_memory.queries.model import Box, Time
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.results import ObjectAt
 
-from .html import PageError, page
+from .html import PageError, bounded_int, page
 
 SECOND = 1_000_000_000
 EVERYWHERE = Box(low=(-PLACE_LIMIT_M,) * 3, high=(PLACE_LIMIT_M,) * 3)
@@ -77,14 +79,11 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
     @router.get("/map")
-    async def map_page(request: Request, t: str = "") -> HTMLResponse:
+    async def map_page(request: Request, t: str = "", at: str = "") -> HTMLResponse:
         span = await run_in_threadpool(_recorded_span, store)
         if span is None:
             return page(request, "map.html", {"span": None})
-        try:
-            moment = time_of_text.validate_python(t) if t.strip() else span[1]
-        except ValidationError as error:
-            raise PageError(422, f"t: {error.errors()[0]['msg']}") from None
+        moment = _moment(t, at) or span[1]
 
         def load():
             believed = engine.what_is_at(box=EVERYWHERE, t=moment).objects
@@ -111,6 +110,18 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         })
 
     return router
+
+
+def _moment(t: str, at: str) -> int | None:
+    """The moment the URL asks for, if any."""
+    if t.strip() and at.strip():
+        raise PageError(422, "give t or at, not both")
+    if at.strip():
+        return bounded_int(at, "at", 0, (2**63 - 1) // SECOND) * SECOND
+    try:
+        return time_of_text.validate_python(t) if t.strip() else None
+    except ValidationError as error:
+        raise PageError(422, f"t: {error.errors()[0]['msg']}") from None
 
 
 def _recorded_span(store: MemoryStore) -> tuple[int, int] | None:

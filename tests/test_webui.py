@@ -22,6 +22,7 @@ import pytest
 import uvicorn
 from bson import ObjectId
 from fastapi.testclient import TestClient
+from markupsafe import escape
 from playwright.sync_api import Page, expect, sync_playwright
 
 from percept_memory.ingest import kitchen_week, synthetic
@@ -425,3 +426,99 @@ def test_filters_by_robot_and_time(client, week):
 def kitchen_week_time(stamp: int) -> str:
     """The ISO form of a timestamp the filter form sends (microseconds are enough here)."""
     return datetime.fromtimestamp(stamp / 1e9, UTC).replace(tzinfo=None).isoformat()
+
+
+# --- plain HTTP: the search, map, annotators, enrichment and live pages ------------------------
+
+def test_untrusted_text_is_escaped_on_the_new_pages(client, hostile):
+    for path in ("/search?robot=mallory", "/search?robot=mallory&view=list",
+                 f"/search?text={HOSTILE}", f"/search?where=text:text={HOSTILE}",
+                 "/annotators", "/enrichment"):
+        body = client.get(path).text
+        assert "<script>" not in body and "&lt;script&gt;" in body, path
+
+
+def test_search_finds_what_the_query_engine_finds(client, store, hostile):
+    body = client.get("/search", params={"robot": "mallory", "view": "list"}).text
+    assert re.findall(r'class="hit" data-cluster="([0-9a-f]{24})"', body) == \
+        [str(hostile.clusters[0].id)]
+    query = {"text": "cereal", "region": "shelf", "sphere": "1.9,0.2,1.3,0.6",
+             "after": "2024-03-04T08:00", "where": "classification:confidence>0.5"}
+    expected = QueryEngine(store).clusters(**query, limit=search.PAGE_SIZE)
+    assert expected.items, "the kitchen week has cereal on the shelf"
+    body = client.get("/search", params=query).text
+    assert re.findall(r'data-cluster="([0-9a-f]{24})"', body) == \
+        [str(hit.id) for hit in expected.items]
+
+
+def test_search_pages_by_cursor(client, store):
+    seen, path = [], "/search?view=list&region=shelf&region=table&region=counter_top_sink"
+    expected = [hit.id for hit in QueryEngine(store).clusters(
+        region=["shelf", "table", "counter_top_sink"], limit=500).items]
+    assert len(expected) > search.PAGE_SIZE
+    while path:
+        body = client.get(path).text
+        seen += [ObjectId(c) for c in re.findall(r'data-cluster="([0-9a-f]{24})"', body)]
+        found = re.search(r'class="next" href="([^"]+)"', body)
+        path = html.unescape(found.group(1)) if found else None
+    assert seen == expected
+
+
+def test_annotators_page_sums_up_the_logs(client, store, hostile):
+    body = client.get("/annotators").text
+    durations: dict[str, list[float]] = {}
+    for doc in store.scenes.find({}, {"_id": 1}):
+        for line in store.get_scene(doc["_id"]).log:
+            if line.duration_ms is not None:
+                durations.setdefault(line.source, []).append(line.duration_ms)
+    for name, values in durations.items():
+        row = re.search(rf'<tr data-annotator="{re.escape(name)}">(.*?)</tr>', body, re.S).group(1)
+        assert f'class="num runs">{len(values)}<' in row, name
+        assert f'class="num p95">{np.percentile(values, 95):.1f}<' in row, name
+        assert f'class="num mean">{np.mean(values):.1f}<' in row, name
+    ocr = re.search(r'<tr data-annotator="OCRAnnotator">(.*?)</tr>', body, re.S).group(1)
+    assert 'class="num errors">1<' in ocr
+    assert f"could not read {escape(HOSTILE)}" in body
+    disagreement = re.search(r'<table class="disagreements">(.*?)</table>', body, re.S).group(1)
+    assert f'href="/clusters/{hostile.clusters[0].id}"' in disagreement
+    assert "MalloryNet</strong>: cup" in disagreement
+
+
+def test_enrichment_page_shows_the_queue_and_the_cache(client):
+    body = client.get("/enrichment").text
+    assert '<td class="num done">3</td>' in body and '<td class="num failed">1</td>' in body
+    assert "66.7 %" in body and "(2 of the latest 3 lookups)" in body
+    assert f"HTTP 500: {escape(HOSTILE)}" in body
+
+
+def test_only_the_live_page_may_run_scripts(client):
+    for path in ("/search", "/map", "/annotators", "/enrichment"):
+        assert "script-src" not in client.get(path).headers["content-security-policy"], path
+    policy = client.get("/live").headers["content-security-policy"]
+    assert "script-src 'self'" in policy and "connect-src 'self'" in policy
+    script = client.get("/static/ui/live.js")
+    assert script.status_code == 200 and "EventSource" in script.text
+
+
+def test_live_events_resume_from_a_bad_token_as_from_now(store):
+    for token in (None, "nonsense", "00" * 600):
+        stream = live._watch(store, token)
+        assert stream.try_next() is None
+        stream.close()
+
+
+@pytest.mark.parametrize("path", [
+    "/search?where=nonsense", "/search?where=classification:colour=red", "/search?box=1,2,3",
+    "/search?sphere=0,0,0,-1", "/search?after=yesterday", "/search?sort=relevance",
+    "/search?after=2024-03-05&before=2024-03-04", "/search?cursor=garbage",
+    "/search?limit=100000", "/search?view=pie", "/search?colour=red", "/search?text=a&text=b",
+    "/search?region=" + "x" * 300, "/search?where=classification:confidence>high",
+    "/map?t=yesterday", "/map?t=-5", "/map?t=99999999999999999999", "/map?at=soon",
+    "/map?at=99999999999999999999", "/map?t=2024-03-04&at=1709510400",
+    "/annotators?scenes=0", "/annotators?scenes=many", "/annotators?scenes=999999",
+])
+def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, path):
+    response = client.get(path)
+    assert response.status_code == 422, response.text
+    assert response.headers["content-type"].startswith("text/html")
+    assert 'role="alert"' in response.text

@@ -335,6 +335,17 @@ def test_live_page_shows_new_scenes_without_reload(page, url, store):
     shot(page, "9-live")
 
 
+def test_annotators_and_enrichment_in_the_browser(page, url):
+    page.goto(url + "/")
+    page.get_by_role("link", name="Annotators", exact=True).click()
+    expect(page.locator("table.annotators tbody tr")).not_to_have_count(0)
+    expect(page.locator("table.disagreements")).to_contain_text("MalloryNet")
+    shot(page, "10-annotators")
+    page.get_by_role("link", name="Enrichment", exact=True).click()
+    expect(page.locator(".hit-rate")).to_contain_text("66.7 %")
+    shot(page, "11-enrichment")
+
+
 def test_keyboard_reaches_the_content(page, url):
     page.goto(url + "/")
     page.keyboard.press("Tab")

@@ -40,6 +40,7 @@ from percept_memory.memory.types import (
     WebLookup,
 )
 from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import ClusterQuery
 from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 
@@ -533,3 +534,19 @@ def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, p
     assert response.status_code == 422, response.text
     assert response.headers["content-type"].startswith("text/html")
     assert 'role="alert"' in response.text
+
+
+NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '{"$gt": 1}',
+         "ä" * 600, "2024-02-30", "1,2", "1,2,3,4,5,6,7", "a:b=c", "classification:confidence>nan"]
+PARAMETERS = {
+    "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
+    "/annotators": ["scenes", "robot"], "/scenes": ["robot", "since", "until", "before"],
+}
+
+
+def test_no_parameter_value_gives_a_server_error(client):
+    for path, names in PARAMETERS.items():
+        for name in names:
+            for value in NASTY:
+                response = client.get(path, params={name: value})
+                assert response.status_code < 500, (path, name, value, response.text[-500:])

@@ -528,6 +528,7 @@ def test_live_events_resume_from_a_bad_token_as_from_now(store):
     "/map?t=yesterday", "/map?t=-5", "/map?t=99999999999999999999", "/map?at=soon",
     "/map?at=99999999999999999999", "/map?t=2024-03-04&at=1709510400",
     "/annotators?scenes=0", "/annotators?scenes=many", "/annotators?scenes=999999",
+    "/annotators?scenes=²", "/map?at=²",
 ])
 def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, path):
     response = client.get(path)
@@ -537,7 +538,8 @@ def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, p
 
 
 NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '{"$gt": 1}',
-         "ä" * 600, "2024-02-30", "1,2", "1,2,3,4,5,6,7", "a:b=c", "classification:confidence>nan"]
+         "ä" * 600, "²", "2024-02-30", "1,2", "1,2,3,4,5,6,7", "a:b=c",
+         "classification:confidence>nan"]
 PARAMETERS = {
     "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
     "/annotators": ["scenes", "robot"], "/scenes": ["robot", "since", "until", "before"],

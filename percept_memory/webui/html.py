@@ -73,6 +73,6 @@ def nanoseconds(text: str, name: str) -> int:
 
 def bounded_int(text: str, name: str, low: int, high: int) -> int:
     """A whole number from the URL within [low, high]."""
-    if not text.strip().isdigit() or not low <= int(text) <= high:
+    if not (text.isascii() and text.strip().isdigit()) or not low <= int(text) <= high:
         raise PageError(422, f"{name}: {text!r} is not a whole number from {low} to {high}")
     return int(text)

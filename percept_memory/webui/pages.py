@@ -188,6 +188,7 @@ def _found(get, key: ObjectId):
 
 def _cursor(text: str) -> tuple[int, ObjectId]:
     stamp, _, scene_id = text.partition("-")
-    if not stamp.isdigit() or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
+    digits = stamp.isascii() and stamp.isdigit()
+    if not digits or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
         raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
     return int(stamp), ObjectId(scene_id)

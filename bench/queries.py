@@ -151,7 +151,8 @@ def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000)
     return world
 
 
-def samples(world: World, count: int, rng: np.random.Generator, words: list[str]) -> dict:
+def samples(world: World, count: int, rng: np.random.Generator, words: list[str],
+            objects: list[ObjectId]) -> dict:
     """Random arguments for each query type."""
     end = START + count * SECONDS_PER_CLUSTER * kw.SECOND
 
@@ -182,8 +183,8 @@ def samples(world: World, count: int, rng: np.random.Generator, words: list[str]
         "field_predicate": lambda: ("clusters", {"where": "classification:confidence>0.9",
                                                  "after": moment(), "limit": 50}),
         "where_is": lambda: ("where_is", {"x": str(rng.choice(long_words))}),
-        "where_was": lambda: ("where_was", {"x": str(world.ids[int(rng.integers(
-            len(world.ids)))])}),
+        "where_was": lambda: ("where_was", {"x": str(objects[int(rng.integers(
+            len(objects)))])}),
         "what_is_at": lambda: ("what_is_at", {"region": world.region_name(
             int(rng.integers(len(world.regions)))), "t": moment()}),
         "changes": lambda: ("changes", {"region": world.region_name(
@@ -202,7 +203,8 @@ def measure(store: MemoryStore, world: World, clusters: int, count: int,
     words = sorted(doc["_id"] for doc in store.db["terms"].find({}, {"_id": 1}))
     engine = QueryEngine(store)
     results = {}
-    kinds = samples(world, clusters, rng, words)
+    objects = [doc["_id"] for doc in store.db[OBJECTS].find({}, {"_id": 1})]
+    kinds = samples(world, clusters, rng, words, objects)
     task = progress.add_task("queries", total=count * len(kinds))
     for kind, make in kinds.items():
         for _ in range(5):  # warm up
@@ -246,7 +248,6 @@ def main() -> None:
                 world = World(np.random.default_rng(5), sorted(templates()))
                 world.place = [(0, tuple(doc["position"])) for doc in
                                store.db[OBJECTS].find({}, {"position": 1})]
-                world.ids = [doc["_id"] for doc in store.db[OBJECTS].find({}, {"_id": 1})]
             else:
                 world = build(store, args.clusters, progress)
             built = time.perf_counter() - start

@@ -5,21 +5,33 @@ frame itself as the scene image) and 200 more scenes for the scene log, in a scr
 on the configured or embedded mongod, dropped afterwards. Pages are fetched in-process through
 the ASGI app (no network), so the time is reading + rendering. Target: scene page < 200 ms.
 
-Usage: python bench/webui.py [--repeat N]
+Then the search page over a large memory: --search-clusters clusters (default 1,000,000)
+built as bench/queries.py builds them (a building of 50 kitchens, a year of observations),
+searched by text, region and time, a sphere, an annotation field predicate, as a grid and as
+a list, and its second page. --keep DB builds into DB once and reuses it (bench/queries.py
+--keep DB builds the same).
+
+Usage: python bench/webui.py [--repeat N] [--search-clusters N] [--keep DB]
 """
 
 from __future__ import annotations
 
 import argparse
+import html
 import json
+import re
 import secrets
 import statistics
 import sys
 import time
+from urllib.parse import urlencode
 
 import numpy as np
 from fastapi.testclient import TestClient
 from ingest import kitchen_image  # bench/ingest.py, beside this file
+from queries import build  # bench/queries.py
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from percept_memory.ingest import synthetic
 from percept_memory.memory.settings import Settings
@@ -28,6 +40,7 @@ from percept_memory.memory.types import Image
 from percept_memory.webui.app import create_app
 
 STAMP = 1_700_000_000_000_000_000
+BATCH = 25  # scenes a transaction: a small embedded mongod's cache refuses 200 with crops
 
 
 def timed(client: TestClient, path: str, repeat: int) -> dict:
@@ -42,9 +55,50 @@ def timed(client: TestClient, path: str, repeat: int) -> dict:
             "p95_ms": round(times[int(0.95 * (len(times) - 1))], 1)}
 
 
+SEARCHES = {
+    "newest": {},
+    "text": {"text": "cereal"},
+    "text_list": {"text": "cereal", "view": "list"},
+    "region_time": {"region": "k7_shelf", "after": "2024-06-01T00:00",
+                    "before": "2024-06-08T00:00"},
+    "sphere": {"sphere": "71.9,30.2,1.25,0.5"},
+    "predicate": {"where": "classification:confidence>0.9", "region": "k3_table"},
+}
+
+
+def search_pages(args: argparse.Namespace) -> dict:
+    """Render times of the search page over a memory of args.search_clusters clusters."""
+    settings = Settings(db=args.keep or f"pmem_bench_{secrets.token_hex(4)}")
+    store = MemoryStore.open(settings)
+    try:
+        start = time.perf_counter()
+        reuse = args.keep and store.clusters.estimated_document_count() == args.search_clusters
+        if not reuse:
+            with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                          MofNCompleteColumn(), TimeElapsedColumn(),
+                          console=Console(stderr=True), transient=True) as progress:
+                build(store, args.search_clusters, progress)
+        built = time.perf_counter() - start
+        client = TestClient(create_app(store, settings))
+        pages = {name: {**timed(client, path := "/search?" + urlencode(query), args.repeat),
+                        "hits": client.get(path).text.count('class="hit"')}
+                 for name, query in SEARCHES.items()}
+        first = client.get("/search?text=cereal").text
+        second = html.unescape(re.search(r'class="next" href="([^"]+)"', first).group(1))
+        pages["text_second_page"] = timed(client, second, args.repeat)
+        return {"clusters": store.clusters.estimated_document_count(),
+                "build_s": None if reuse else round(built, 1), "pages": pages}
+    finally:
+        if not args.keep:
+            store.client.drop_database(settings.db)
+        store.close()
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=30)
+    parser.add_argument("--search-clusters", type=int, default=1_000_000)
+    parser.add_argument("--keep", metavar="DB", help="build the large memory into DB, keep it")
     args = parser.parse_args()
     rng, image = np.random.default_rng(0), kitchen_image()
     big = synthetic.scene(rng, STAMP, clusters=20, image=image)
@@ -54,7 +108,9 @@ def main() -> None:
     settings = Settings(db=f"pmem_bench_{secrets.token_hex(4)}")
     store = MemoryStore.open(settings)
     try:
-        store.put_scenes([big, *others])
+        scenes = [big, *others]
+        for start in range(0, len(scenes), BATCH):  # one transaction per batch
+            store.put_scenes(scenes[start:start + BATCH])
         client = TestClient(create_app(store, settings))
         result = {
             "benchmark": "webui",
@@ -67,6 +123,7 @@ def main() -> None:
     finally:
         store.client.drop_database(settings.db)
         store.close()
+    result["search_page"] = search_pages(args)
     json.dump(result, sys.stdout, indent=2)
     print()
 

@@ -334,3 +334,18 @@ def test_concurrent_appends_to_one_cluster_all_land(mongo_uri, db_name, store):
 
     cluster = run_async(mongo_uri, db_name, work)
     assert sorted(a.text for a in cluster.annotations) == sorted(f"lookup {i}" for i in range(12))
+
+
+def test_a_batch_too_big_for_one_transaction_is_written_in_parts(store):
+    """150 scenes of 1 MB of incompressible pixels outgrow what the test mongod's 256 MB cache
+    holds in one transaction (TransactionTooLargeForCache): the batch is written in smaller
+    transactions, every scene whole, with the ids it was given."""
+    rng = np.random.default_rng(5)
+    scenes = [Scene(timestamp=7_000_000_000_000_000_000 + i, robot="big-batch", images={
+        "rgb": Image(data=rng.integers(0, 255, (600, 600, 3), dtype=np.uint8), encoding="bgr8")})
+        for i in range(150)]
+    ids = store.put_scenes(scenes)
+    assert [i.scene_id for i in ids] == [s.id for s in scenes]
+    assert store.scenes.count_documents({"robot": "big-batch"}) == 150
+    again = store.get_scene(scenes[77].id)
+    assert np.array_equal(again.images["rgb"].data, scenes[77].images["rgb"].data)

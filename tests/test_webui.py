@@ -14,15 +14,18 @@ import socket
 import threading
 import time
 from collections import Counter
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 import uvicorn
 from bson import ObjectId
 from fastapi.testclient import TestClient
+from markupsafe import escape
 from playwright.sync_api import Page, expect, sync_playwright
 
-from percept_memory.ingest import kitchen_week
+from percept_memory.ingest import kitchen_week, synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.consolidation import Consolidator
@@ -36,6 +39,9 @@ from percept_memory.memory.types import (
     Text,
     WebLookup,
 )
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import ClusterQuery
+from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 
 from .conftest import ROBOSHERLOCK
@@ -65,13 +71,16 @@ def hostile():
     roi = ImageROI(box=(0, 0, 2, 2))
     cluster = Cluster(hypotheses=[roi], annotations=[
         Text(text=HOSTILE, source="OCRAnnotator"),
-        Classification(class_name=HOSTILE, confidence=0.5),
+        Classification(class_name=HOSTILE, confidence=0.5, source="SVMClassifier"),
+        Classification(class_name="cup", confidence=0.9, source="MalloryNet"),
         WebLookup(category="text", title="evil", links=["javascript:alert(1)",
                                                         "https://example.org/a?b=<i>"]),
         {"_type": "rs.annotation.Segment", "label": "<b>bold</b>", "score": 0.25},  # unknown
     ])
     return Scene(timestamp=HOSTILE_STAMP, robot="mallory", clusters=[cluster],
-                 log=[LogLine(source="OCRAnnotator", message=f"read {HOSTILE}")])
+                 log=[LogLine(source="OCRAnnotator", message=f"read {HOSTILE}"),
+                      LogLine(source="OCRAnnotator", level="error",
+                              message=f"could not read {HOSTILE}")])
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +88,24 @@ def filled(store, week, sample, hostile):
     items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
     list(IngestService(store, after_store=[Consolidator(store)]).ingest_stream(items))
     store.put_scenes([sample, hostile])  # not consolidated: clusters without an object
+    store.db.jobs.insert_many(lookups(week))
     return store
+
+
+def lookups(week) -> list[dict]:
+    """Enrichment jobs as workers leave them (ingest/jobs.py): three lookups done, two of them
+    answered by the cache, and one failed with a hostile error."""
+    at = datetime(2024, 3, 11, tzinfo=UTC)
+    clusters = [c.id for scene in week.scenes for c in scene.clusters][:4]
+    done = [{"kind": "lookup", "cluster_id": c, "state": "done", "attempts": 1,
+             "created": at, "updated": at + timedelta(seconds=i), "worker": "w1",
+             "outcome": {"backend": "simulated", "cached": i > 0, "hash_distance": i or None,
+                         "latency_ms": 900.0 if i == 0 else 1.5, "findings": 2,
+                         "annotations": 3}}
+            for i, c in enumerate(clusters[:3])]
+    failed = {"kind": "lookup", "cluster_id": clusters[3], "state": "failed", "attempts": 5,
+              "created": at, "updated": at, "worker": "w2", "error": f"HTTP 500: {HOSTILE}"}
+    return [*done, failed]
 
 
 @pytest.fixture(scope="module")
@@ -192,10 +218,88 @@ def test_scene_log_to_scene_to_cluster_to_object_and_back(page, url, store, week
     images_decode(page)
     shot(page, "4-object")
 
+    search_for_cereal(page, url, store, week)
+    map_at_a_past_time(page, url, store, week)
+
+    for back_to in (r"/map$", r"/search\?.*text=cereal.*view=list", r"/search\?.*text=cereal",
+                    r"/search$", rf"/objects/{believed['_id']}$"):
+        page.go_back()
+        expect(page).to_have_url(re.compile(back_to))
     page.go_back()
     expect(page).to_have_url(f"{url}/clusters/{cluster.id}")
     page.go_back()
     expect(page).to_have_url(f"{url}/scenes/{scene.id}")
+
+
+def truth_of(week) -> dict[ObjectId, str]:
+    """Cluster id -> the kitchen week object it shows (ground truth)."""
+    return {cluster.id: week.truth.object_at(i, j) for i, scene in enumerate(week.scenes)
+            for j, cluster in enumerate(scene.clusters)}
+
+
+def search_for_cereal(page: Page, url: str, store, week) -> None:
+    """Search from the navigation bar: the kitchen week's cereal box is found, as a grid of
+    crops and as a list, and the URL holds the query."""
+    page.get_by_role("link", name="Search", exact=True).click()
+    page.get_by_label("Text", exact=True).fill("cereal")
+    page.get_by_role("button", name="Search").click()
+    expect(page).to_have_url(re.compile(r"/search\?.*text=cereal"))
+    expected = QueryEngine(store).clusters(text="cereal", limit=search.PAGE_SIZE).items
+    hits = page.locator("ul.grid li.hit")
+    expect(hits).to_have_count(len(expected))
+    shown = [ObjectId(hits.nth(i).get_attribute("data-cluster")) for i in range(len(expected))]
+    assert shown == [hit.id for hit in expected]
+    truth = truth_of(week)
+    kinds = Counter(truth[c].partition("#")[0] for c in shown)
+    assert kinds["corn_flakes"] > 0, kinds  # the cereal box; tea is sometimes taken for cereal
+    assert set(kinds) <= {"corn_flakes", "tea"}, kinds
+    images_decode(page)
+    shot(page, "6-search-grid")
+
+    page.get_by_role("link", name="list", exact=True).click()
+    expect(page.locator("table.results tbody tr.hit")).to_have_count(len(expected))
+    expect(page).to_have_url(re.compile(r"view=list"))
+    shot(page, "7-search-list")
+
+
+def past_moment(store, week) -> tuple[int, list[ObjectId], ObjectId]:
+    """A moment just after scene k of the week, the objects that scene saw (believed present
+    then), and an object seen before on another surface and still there by the ground truth,
+    out of view at that moment: believed hidden. Unique objects only (no identical cups)."""
+    truth = week.truth
+    for k in range(10, len(week.scenes)):
+        t = -(-week.scenes[k].timestamp // 10**9) * 10**9  # the slider moves by whole seconds
+        here = truth.scenes[k].region
+        for j in range(k - 1, -1, -1):
+            if truth.scenes[j].region == here:
+                continue
+            unique = [(i, o) for i, o in enumerate(truth.scenes[j].objects)
+                      if kitchen_week.item_of(o).count == 1
+                      and truth.where_at(o, t) == truth.scenes[j].region]
+            if unique:
+                present = [store.get_cluster(c.id).object_id for c in week.scenes[k].clusters]
+                hidden = store.get_cluster(week.scenes[j].clusters[unique[0][0]].id).object_id
+                return t, present, hidden
+    raise AssertionError("the week has no such moment")
+
+
+def map_at_a_past_time(page: Page, url: str, store, week) -> None:
+    """The map at a past moment picked with the time slider: what was seen then drawn as
+    present, an object out of view then drawn as hidden, each a link to its page."""
+    t, present, hidden = past_moment(store, week)
+    page.get_by_role("link", name="Map", exact=True).click()
+    page.locator("input[name=at]").fill(str(t // 10**9))
+    page.get_by_role("button", name="Show").click()
+    expect(page).to_have_url(f"{url}/map?at={t // 10**9}")
+    expect(page.locator("h1 small")).to_contain_text(render.time_of(t))
+    for object_id in present:
+        expect(page.locator(f'a.object.present[data-object="{object_id}"]')).to_have_count(1)
+    drawn = page.locator(f'a.object.hidden[data-object="{hidden}"]')
+    expect(drawn).to_have_count(1)
+    name = store.db.objects.find_one({"_id": hidden})["name"]
+    expect(drawn.locator("text")).to_have_text(name)
+    expect(page.locator(f'table.believed tr.hidden a[href="/objects/{hidden}"]')).to_have_count(1)
+    shot(page, "8-map")
 
 
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
@@ -214,6 +318,33 @@ def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
     page.locator("a.box").nth(1).click()
     expect(page).to_have_url(f"{url}/scenes/{sample.id}#cluster-2")
     shot(page, "5-scene-image")
+
+
+def test_live_page_shows_new_scenes_without_reload(page, url, store):
+    page.goto(url + "/live")
+    expect(page.locator("#live-status")).to_have_text(re.compile("^Live"))
+    rows = page.locator("tr.scene")
+    expect(rows).to_have_count(live.SHOWN)
+    arrived = synthetic.scene(np.random.default_rng(7), HOSTILE_STAMP - 3600 * 10**9,
+                              clusters=3, robot="live-bot")
+    store.put_scene(arrived)  # older than every scene: the other tests' pages stay the same
+    row = page.locator(f'tr.scene.new[data-scene="{arrived.id}"]')
+    expect(row).to_be_visible()
+    expect(rows.first).to_have_attribute("data-scene", str(arrived.id))
+    expect(row.locator("td.clusters")).to_have_text("3")
+    expect(rows).to_have_count(live.SHOWN)
+    shot(page, "9-live")
+
+
+def test_annotators_and_enrichment_in_the_browser(page, url):
+    page.goto(url + "/")
+    page.get_by_role("link", name="Annotators", exact=True).click()
+    expect(page.locator("table.annotators tbody tr")).not_to_have_count(0)
+    expect(page.locator("table.disagreements")).to_contain_text("MalloryNet")
+    shot(page, "10-annotators")
+    page.get_by_role("link", name="Enrichment", exact=True).click()
+    expect(page.locator(".hit-rate")).to_contain_text("66.7 %")
+    shot(page, "11-enrichment")
 
 
 def test_keyboard_reaches_the_content(page, url):
@@ -306,6 +437,118 @@ def test_filters_by_robot_and_time(client, week):
 
 def kitchen_week_time(stamp: int) -> str:
     """The ISO form of a timestamp the filter form sends (microseconds are enough here)."""
-    from datetime import UTC, datetime
-
     return datetime.fromtimestamp(stamp / 1e9, UTC).replace(tzinfo=None).isoformat()
+
+
+# --- plain HTTP: the search, map, annotators, enrichment and live pages ------------------------
+
+def test_untrusted_text_is_escaped_on_the_new_pages(client, hostile):
+    for path in ("/search?robot=mallory", "/search?robot=mallory&view=list",
+                 f"/search?text={HOSTILE}", f"/search?where=text:text={HOSTILE}",
+                 "/annotators", "/enrichment"):
+        body = client.get(path).text
+        assert "<script>" not in body and "&lt;script&gt;" in body, path
+
+
+def test_search_finds_what_the_query_engine_finds(client, store, hostile):
+    body = client.get("/search", params={"robot": "mallory", "view": "list"}).text
+    assert re.findall(r'class="hit" data-cluster="([0-9a-f]{24})"', body) == \
+        [str(hostile.clusters[0].id)]
+    query = {"text": "cereal", "region": "shelf", "sphere": "1.9,0.2,1.3,0.6",
+             "after": "2024-03-04T08:00", "where": "classification:confidence>0.5"}
+    expected = QueryEngine(store).clusters(**query, limit=search.PAGE_SIZE)
+    assert expected.items, "the kitchen week has cereal on the shelf"
+    body = client.get("/search", params=query).text
+    assert re.findall(r'data-cluster="([0-9a-f]{24})"', body) == \
+        [str(hit.id) for hit in expected.items]
+
+
+def test_search_pages_by_cursor(client, store):
+    seen, path = [], "/search?view=list&region=shelf&region=table&region=counter_top_sink"
+    expected = [hit.id for hit in QueryEngine(store).clusters(
+        region=["shelf", "table", "counter_top_sink"], limit=500).items]
+    assert len(expected) > search.PAGE_SIZE
+    while path:
+        body = client.get(path).text
+        seen += [ObjectId(c) for c in re.findall(r'data-cluster="([0-9a-f]{24})"', body)]
+        found = re.search(r'class="next" href="([^"]+)"', body)
+        path = html.unescape(found.group(1)) if found else None
+    assert seen == expected
+
+
+def test_annotators_page_sums_up_the_logs(client, store, hostile):
+    body = client.get("/annotators").text
+    durations: dict[str, list[float]] = {}
+    for doc in store.scenes.find({}, {"_id": 1}):
+        for line in store.get_scene(doc["_id"]).log:
+            if line.duration_ms is not None:
+                durations.setdefault(line.source, []).append(line.duration_ms)
+    for name, values in durations.items():
+        row = re.search(rf'<tr data-annotator="{re.escape(name)}">(.*?)</tr>', body, re.S).group(1)
+        assert f'class="num runs">{len(values)}<' in row, name
+        assert f'class="num p95">{np.percentile(values, 95):.1f}<' in row, name
+        assert f'class="num mean">{np.mean(values):.1f}<' in row, name
+    ocr = re.search(r'<tr data-annotator="OCRAnnotator">(.*?)</tr>', body, re.S).group(1)
+    assert 'class="num errors">1<' in ocr
+    assert f"could not read {escape(HOSTILE)}" in body
+    disagreement = re.search(r'<table class="disagreements">(.*?)</table>', body, re.S).group(1)
+    assert f'href="/clusters/{hostile.clusters[0].id}"' in disagreement
+    assert "MalloryNet</strong>: cup" in disagreement
+
+
+def test_enrichment_page_shows_the_queue_and_the_cache(client):
+    body = client.get("/enrichment").text
+    assert '<td class="num done">3</td>' in body and '<td class="num failed">1</td>' in body
+    assert "66.7 %" in body and "(2 of the latest 3 lookups)" in body
+    assert f"HTTP 500: {escape(HOSTILE)}" in body
+
+
+def test_only_the_live_page_may_run_scripts(client):
+    for path in ("/search", "/map", "/annotators", "/enrichment"):
+        assert "script-src" not in client.get(path).headers["content-security-policy"], path
+    policy = client.get("/live").headers["content-security-policy"]
+    assert "script-src 'self'" in policy and "connect-src 'self'" in policy
+    script = client.get("/static/ui/live.js")
+    assert script.status_code == 200 and "EventSource" in script.text
+
+
+def test_live_events_resume_from_a_bad_token_as_from_now(store):
+    for token in (None, "nonsense", "00" * 600):
+        stream = live._watch(store, token)
+        assert stream.try_next() is None
+        stream.close()
+
+
+@pytest.mark.parametrize("path", [
+    "/search?where=nonsense", "/search?where=classification:colour=red", "/search?box=1,2,3",
+    "/search?sphere=0,0,0,-1", "/search?after=yesterday", "/search?sort=relevance",
+    "/search?after=2024-03-05&before=2024-03-04", "/search?cursor=garbage",
+    "/search?limit=100000", "/search?view=pie", "/search?colour=red", "/search?text=a&text=b",
+    "/search?region=" + "x" * 300, "/search?where=classification:confidence>high",
+    "/map?t=yesterday", "/map?t=-5", "/map?t=99999999999999999999", "/map?at=soon",
+    "/map?at=99999999999999999999", "/map?t=2024-03-04&at=1709510400",
+    "/annotators?scenes=0", "/annotators?scenes=many", "/annotators?scenes=999999",
+    "/annotators?scenes=²", "/map?at=²",
+])
+def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, path):
+    response = client.get(path)
+    assert response.status_code == 422, response.text
+    assert response.headers["content-type"].startswith("text/html")
+    assert 'role="alert"' in response.text
+
+
+NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '{"$gt": 1}',
+         "ä" * 600, "²", "2024-02-30", "1,2", "1,2,3,4,5,6,7", "a:b=c",
+         "classification:confidence>nan"]
+PARAMETERS = {
+    "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
+    "/annotators": ["scenes", "robot"], "/scenes": ["robot", "since", "until", "before"],
+}
+
+
+def test_no_parameter_value_gives_a_server_error(client):
+    for path, names in PARAMETERS.items():
+        for name in names:
+            for value in NASTY:
+                response = client.get(path, params={name: value})
+                assert response.status_code < 500, (path, name, value, response.text[-500:])

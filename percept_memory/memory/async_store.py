@@ -11,9 +11,7 @@ from collections.abc import Sequence
 from bson import ObjectId
 from pymongo import AsyncMongoClient
 from pymongo.errors import (
-    BulkWriteError,
     DocumentTooLarge,
-    DuplicateKeyError,
     OperationFailure,
     PyMongoError,
 )
@@ -24,14 +22,12 @@ from . import documents as docs
 from .errors import (
     NotFound,
     StoreError,
-    TooLarge,
     require_replica_set,
-    too_large,
     unreachable,
 )
 from .schema import COUNTED_COLLECTIONS, INDEXES, catalogue_entry
 from .settings import Settings
-from .store import CLIENT_OPTIONS, ClusterChange, StoreBase, vocabulary_upserts
+from .store import CLIENT_OPTIONS, HALVE, ClusterChange, StoreBase, halves, vocabulary_upserts
 from .types import Annotation, Cluster, Scene
 
 
@@ -88,17 +84,16 @@ class AsyncMemoryStore(StoreBase):
 
         try:
             await self._transaction(work)
-        except (DuplicateKeyError, BulkWriteError) as error:
+        except (DocumentTooLarge, OperationFailure) as error:
+            if self._refused(error, prepared) == HALVE:
+                return [result for half in halves(prepared.scenes) for result in
+                        await self.commit_scenes(docs.prepared(half, {}, self.gridfs_threshold))]
             stored = await self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None
             docs.undo_ids(prepared, stored)
             return await self.commit_scenes(docs.prepared(
                 prepared.scenes, await self._stored(prepared.scenes), self.gridfs_threshold))
-        except (DocumentTooLarge, OperationFailure) as error:
-            if not too_large(error):
-                raise
-            raise TooLarge(self.gridfs_threshold) from error
         await self._catalogue(written)
         return prepared.results
 

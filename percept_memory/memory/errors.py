@@ -55,6 +55,28 @@ class TooLarge(StoreError):
 
 
 BSON_OBJECT_TOO_LARGE = 10334
+TRANSACTION_TOO_LARGE_FOR_CACHE = 388
+
+
+def transaction_too_large(error: Exception) -> bool:
+    """Did the server abort a transaction that outgrew its cache (a batch of big scenes on a
+    small WiredTiger cache)?"""
+    if not isinstance(error, OperationFailure):
+        return False
+    codes = {error.code} | {e.get("code") for e in (error.details or {}).get("writeErrors", ())}
+    return TRANSACTION_TOO_LARGE_FOR_CACHE in codes
+
+
+class TransactionTooLarge(StoreError):
+    """One scene alone is more than the server's cache can hold in a transaction."""
+
+    def __init__(self, threshold: int):
+        super().__init__(
+            "not stored: writing this scene needs more than the MongoDB server's cache can hold "
+            "in one transaction; give mongod a bigger cache (PMEM_MONGOD_CACHE_GB for the "
+            "embedded one, --wiredTigerCacheSizeGB otherwise) or store large images and "
+            f"arrays in GridFS by setting PMEM_GRIDFS_THRESHOLD below {threshold} bytes"
+        )
 
 
 def too_large(error: Exception) -> bool:

@@ -58,8 +58,8 @@ class Parameters:
     proximity_sigma: float = 0.05
     # Odds of the explanations, tuned on the thesis' synthetic protocol at its four noise
     # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0).
-    prior_move: float = 0.1138  # odds that an object moved between two looks at it
-    prior_newview: float = 0.2527  # odds that the same place shows another side of it
+    prior_move: float = 0.0338  # odds that an object moved between two looks at it
+    prior_newview: float = 0.3032  # odds that the same place shows another side of it
     prior_appear: float = 4.1028  # odds of "a new object" against a known one
     prior_gone: float = 2.575  # odds of "an object in view is not there any more"
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
@@ -75,7 +75,7 @@ class Parameters:
     place_different: float = 0.1
     prior_weight: float = 10.0
     memory: float = 500.0
-    confident: float = 0.2034  # decisions at least this likely teach it what differs
+    confident: float = 0.1424  # decisions at least this likely teach it what differs
 
 
 @dataclass
@@ -171,11 +171,15 @@ class Spread:
         mean = surprise(similarity)
         return cls(weight, mean, mean * mean / shape)
 
-    def learn(self, u: float, memory: float) -> None:
-        self.weight = min(self.weight + 1.0, memory)
+    def learn(self, u: float, memory: float, weight: float = 1.0) -> None:
+        """Take in one value, counted `weight` times (0..1: how sure it belongs here)."""
+        if weight <= 0:
+            return
+        u = min(u, self.mean + 3 * math.sqrt(self.variance))  # an outlier widens it slowly
+        self.weight = min(self.weight + weight, memory)
         delta = u - self.mean
-        self.mean += delta / self.weight
-        self.variance += (delta * (u - self.mean) - self.variance) / self.weight
+        self.mean += weight * delta / self.weight
+        self.variance += weight * (delta * (u - self.mean) - self.variance) / self.weight
 
     def gamma(self) -> tuple[float, float]:
         """Shape and scale, by the method of moments."""
@@ -307,9 +311,11 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
 
 def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
            cues: dict, known: int, params: Parameters) -> None:
-    """Teach the calibration with the confident decisions: a stay shows how alike and how
-    near one object seen twice is (each cue confirmed by the other), and every other pairing
-    of a confidently explained observation shows two different objects."""
+    """Teach the calibration with the decisions (soft EM): a stay shows how alike and how
+    near one object seen twice is, each cue's value counted by how sure the current model is
+    that it belongs to the same object rather than to a turned (newview) or moved one, so a
+    wrong stay cannot widen what "the same" means; every other pairing of a confidently
+    explained observation shows two different objects."""
     memory = params.memory
     for i, decision in enumerate(decisions):
         for j in range(known):
@@ -317,9 +323,11 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
             if assigned.get(i) == j:
                 if decision.explanation is Explanation.STAY:
                     if look is not None:
-                        calibration.look.same.learn(surprise(look), memory)
+                        odds = calibration.look.odds(look) / params.prior_newview
+                        calibration.look.same.learn(surprise(look), memory, odds / (1 + odds))
                     if place is not None:
-                        calibration.place.same.learn(surprise(place), memory)
+                        odds = calibration.place.odds(place) / params.prior_move
+                        calibration.place.same.learn(surprise(place), memory, odds / (1 + odds))
                 continue
             if decision.probability < params.confident:
                 continue

@@ -17,6 +17,8 @@ import math
 import re
 from collections.abc import Iterable, Iterator, Mapping
 
+from bson.int64 import Int64
+
 from percept_memory.converters import escape_key
 
 # --- words --------------------------------------------------------------------------------
@@ -80,8 +82,9 @@ def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) 
 
 # --- fields -------------------------------------------------------------------------------
 
-SCALARS = (str, bool, int, float)
+SCALARS = frozenset({str, bool, int, float, Int64})  # exact types: encoded documents are plain
 FIELD_DEPTH = 2  # `confidences.cereal`, `properties.perishable`; deeper values are not keyed
+_NOT_FIELDS = frozenset({"_id", "_type"})
 
 
 def field_key(type_name: str, path: str) -> str:
@@ -91,30 +94,30 @@ def field_key(type_name: str, path: str) -> str:
 def field_entries(annotations: Iterable[Mapping]) -> list[dict]:
     """{k, v} for every scalar field of every annotation document (any type, `_id` and
     `_type` aside), nested mappings down to FIELD_DEPTH; lists and typed values (arrays,
-    images, poses) are left out. Duplicates are dropped."""
+    images, poses) are left out. Duplicates are dropped. (Runs for every stored cluster:
+    written for speed, with exact type tests.)"""
     seen: set = set()
     out = []
     for annotation in annotations:
         name = annotation.get("_type")
-        if not isinstance(name, str):
+        if type(name) is not str:
             continue
         for path, value in _scalars(annotation, "", 1):
-            key = (path, type(value).__name__, value)
+            key = (path, type(value), value)
             if key not in seen:
                 seen.add(key)
-                out.append({"k": field_key(name, path), "v": value})
+                out.append({"k": f"{name}:{path}", "v": value})
     return out
 
 
 def _scalars(doc: Mapping, prefix: str, depth: int) -> Iterator[tuple[str, object]]:
     for key, value in doc.items():
-        if key in ("_id", "_type"):
-            continue
-        path = f"{prefix}{key}"
-        if isinstance(value, SCALARS) and not (isinstance(value, float) and math.isnan(value)):
-            yield path, value
-        elif isinstance(value, Mapping) and "_type" not in value and depth < FIELD_DEPTH:
-            yield from _scalars(value, f"{path}.", depth + 1)
+        kind = type(value)
+        if kind in SCALARS:
+            if key not in _NOT_FIELDS and value == value:  # (NaN is not a value to look up)
+                yield prefix + key, value
+        elif kind is dict and depth < FIELD_DEPTH and "_type" not in value:
+            yield from _scalars(value, f"{prefix}{key}.", depth + 1)
 
 
 def field_path(first: str, rest: Iterable[str]) -> str:

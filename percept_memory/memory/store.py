@@ -13,13 +13,7 @@ from collections.abc import Callable, Sequence
 
 from bson import ObjectId
 from pymongo import MongoClient, UpdateOne
-from pymongo.errors import (
-    BulkWriteError,
-    DocumentTooLarge,
-    DuplicateKeyError,
-    OperationFailure,
-    PyMongoError,
-)
+from pymongo.errors import DocumentTooLarge, OperationFailure, PyMongoError
 
 from percept_memory.converters import content_id
 
@@ -29,9 +23,11 @@ from .errors import (
     NotFound,
     StoreError,
     TooLarge,
+    TransactionTooLarge,
     duplicate_key,
     require_replica_set,
     too_large,
+    transaction_too_large,
     unreachable,
 )
 from .schema import (
@@ -54,6 +50,14 @@ ClusterChange = Callable[[Cluster], Cluster | None]
 def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
     """Idempotent writes of vocabulary entries: a word is inserted once and never changed."""
     return [UpdateOne({"_id": e["_id"]}, {"$setOnInsert": e}, upsert=True) for e in entries]
+
+
+HALVE, STORED = "halve", "stored"
+
+
+def halves(items: Sequence) -> tuple[Sequence, Sequence]:
+    middle = len(items) // 2
+    return items[:middle], items[middle:]
 
 
 class StoreBase:
@@ -86,6 +90,20 @@ class StoreBase:
 
     def _remember_words(self, collection: str, entries: list[dict]) -> None:
         self._known_words.update((collection, e["_id"]) for e in entries)
+
+    def _refused(self, error: Exception, prepared: docs.PreparedWrite) -> str:
+        """What to do about a scene write the server refused: HALVE a batch too big for one
+        transaction in its cache (each scene stays atomic, assigned ids are kept), or look
+        up the scenes a duplicate key says are STORED already; else a clear error."""
+        if too_large(error):
+            raise TooLarge(self.gridfs_threshold) from error
+        if transaction_too_large(error):
+            if len(prepared.scenes) == 1:
+                raise TransactionTooLarge(self.gridfs_threshold) from error
+            return HALVE
+        if duplicate_key(error) is None:
+            raise error
+        return STORED
 
     @staticmethod
     def _duplicate(error: Exception) -> DuplicateId:
@@ -157,17 +175,16 @@ class MemoryStore(StoreBase):
             return prepared.results
         try:
             self._transaction(lambda session: self._insert(written, session))
-        except (DuplicateKeyError, BulkWriteError) as error:
+        except (DocumentTooLarge, OperationFailure) as error:
+            if self._refused(error, prepared) == HALVE:
+                return [result for half in halves(prepared.scenes) for result in
+                        self.commit_scenes(docs.prepared(half, {}, self.gridfs_threshold))]
             stored = self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None
             docs.undo_ids(prepared, stored)
             return self.commit_scenes(docs.prepared(
                 prepared.scenes, self._stored(prepared.scenes), self.gridfs_threshold))
-        except (DocumentTooLarge, OperationFailure) as error:
-            if not too_large(error):
-                raise
-            raise TooLarge(self.gridfs_threshold) from error
         self._catalogue(written)
         return prepared.results
 

@@ -18,7 +18,9 @@ from percept_memory.memory.search_keys import (
 
 from .model import Box, Sphere
 
-MAX_CELLS = 216  # cells one volume may be looked up by (6 x 6 x 6 at the finest level fitting)
+MAX_CELLS = 125  # cells one volume is looked up by (5 x 5 x 5 at the finest level that fits):
+# under MongoDB's 200 index points merged in sort order (internalQueryMaxScansToExplode), so
+# a page newest first merges the cells' index ranges instead of sorting every candidate
 
 
 def cells_of_volume(volume: Box | Sphere) -> list[str]:
@@ -78,16 +80,18 @@ def inside(volume: Box | Sphere, position: str) -> dict:
 
 
 def shells(point) -> list[tuple[list[str], float]]:
-    """For the k-nearest search: growing cubes of 3 x 3 x 3 cells around the point, one per
-    level, each with the radius it is sure to cover (the distance from the point to the
-    cube's nearest face); last the cell of everything, which covers any radius."""
+    """For the k-nearest search: growing cubes of 3 x 3 x 3, then 5 x 5 x 5 cells around the
+    point at each level, each with the radius it is sure to cover (the distance from the point
+    to the cube's nearest face); last the cell of everything, which covers any radius."""
     out = []
     for level, size in enumerate(CELL_SIZES):
         centre = cell_index(level, point)
-        keys = [cell(level, (centre[0] + dx, centre[1] + dy, centre[2] + dz))
-                for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)]
-        covered = min(min(point[a] - (centre[a] - 1) * size, (centre[a] + 2) * size - point[a])
-                      for a in range(3))
-        out.append((keys, covered))
+        for ring in (1, 2):
+            steps = range(-ring, ring + 1)
+            keys = [cell(level, (centre[0] + dx, centre[1] + dy, centre[2] + dz))
+                    for dx in steps for dy in steps for dz in steps]
+            covered = min(min(point[a] - (centre[a] - ring) * size,
+                              (centre[a] + ring + 1) * size - point[a]) for a in range(3))
+            out.append((keys, covered))
     out.append(([EVERYWHERE], float("inf")))
     return out

@@ -58,7 +58,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
-    mount_pages(app, store)  # the HTML pages (pages.py)
+    mount_pages(app, store, settings)  # the HTML pages (pages.py)
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:

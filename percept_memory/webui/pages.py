@@ -1,71 +1,46 @@
 """The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): the scene log,
 a scene with its image, cluster boxes, log, relations and annotations, a cluster, and an
-object's history. Server-rendered, no JavaScript; every page sends a Content-Security-Policy
-that allows nothing but this site's own images and style sheet. Jinja2 escapes every value, so
-OCR text, web results and annotator logs are shown, never run.
-
-URL parameters are parsed here, each bad one refused with a 404 or 422 page naming it.
+object's history; `mount_pages` adds them and the pages of the other modules (search, map,
+annotators, enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
 """
 
 from __future__ import annotations
-
-from datetime import UTC, datetime
-from pathlib import Path
 
 from bson import ObjectId
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
-from fastapi.templating import Jinja2Templates
 from pymongo import DESCENDING
 
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import EVENTS, OBJECTS
+from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image, ImageROI, Scene
+from percept_memory.queries.engine import QueryEngine
 
-from . import render
+from . import annotators, belief_map, enrichment, live, render, search
+from .html import HERE, LIST_FIELDS, PageError, nanoseconds, page, parse_id
 from .images import display_png
 
-HERE = Path(__file__).parent
-CSP = ("default-src 'none'; img-src 'self'; style-src 'self'; form-action 'self'; "
-       "base-uri 'none'; frame-ancestors 'none'")
-PAGE_HEADERS = {"Content-Security-Policy": CSP, "X-Content-Type-Options": "nosniff"}
 SCENES_PER_PAGE = 20
 EVENTS_SHOWN = 500
 THUMB_SIDE = 160
-LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
-               # the names of the scene's images, not their pixels
-               "images": {"$map": {"input": {"$objectToArray": {"$ifNull": ["$images", {}]}},
-                                   "in": "$$this.k"}}}
-
-templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
-templates.env.filters["time"] = render.time_of
-templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields)
 
 
-class PageError(Exception):
-    """A request a page cannot answer: shown as an HTML error page with this status."""
-
-    def __init__(self, status: int, message: str):
-        super().__init__(message)
-        self.status, self.message = status, message
-
-
-def mount_pages(app: FastAPI, store: MemoryStore) -> None:
-    """Add the pages, their images and their style sheet to the app."""
+def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
+    """Add the pages, their images, style sheet and scripts to the app."""
     app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
-    app.include_router(page_routes(store))
+    engine = QueryEngine(store, settings)
+    for router in (page_routes(store), search.routes(store, engine),
+                   belief_map.routes(store, engine), annotators.routes(store, engine),
+                   enrichment.routes(store), live.routes(store)):
+        app.include_router(router)
 
     @app.exception_handler(PageError)
     async def _page_error(request: Request, error: PageError) -> HTMLResponse:
         return page(request, "error.html", {"error": error}, error.status)
-
-
-def page(request: Request, template: str, context: dict, status: int = 200) -> HTMLResponse:
-    return templates.TemplateResponse(request, template, context, status_code=status,
-                                      headers=PAGE_HEADERS)
 
 
 def page_routes(store: MemoryStore) -> APIRouter:
@@ -74,7 +49,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     async def stored(get, text: str, kind: str):
         """The stored scene or cluster an URL names, or a 404 page."""
-        return await run_in_threadpool(_found, get, _object_id(text, kind))
+        return await run_in_threadpool(_found, get, parse_id(text, kind))
 
     @router.get("/")
     @router.get("/scenes")
@@ -85,7 +60,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
         query: dict = {}
         if robot:
             query["robot"] = robot
-        span = {op: _nanoseconds(text, name) for op, text, name in
+        span = {op: nanoseconds(text, name) for op, text, name in
                 (("$gte", since, "since"), ("$lte", until, "until")) if text}
         if span:
             query["timestamp"] = span
@@ -146,7 +121,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
     @router.get("/objects/{object_id}")
     async def object_page(request: Request, object_id: str) -> HTMLResponse:
-        key = _object_id(object_id, "object")
+        key = parse_id(object_id, "object")
 
         def load() -> tuple[dict | None, list[dict]]:
             believed = objects.find_one({"_id": key})
@@ -211,26 +186,9 @@ def _found(get, key: ObjectId):
         raise PageError(404, str(error)) from None
 
 
-def _object_id(text: str, kind: str) -> ObjectId:
-    if not ObjectId.is_valid(text):
-        raise PageError(404, f"no {kind} {text!r}: ids are 24 hexadecimal digits")
-    return ObjectId(text)
-
-
-def _nanoseconds(text: str, name: str) -> int:
-    """An ISO 8601 date or time (UTC unless it says otherwise) as nanoseconds since the epoch."""
-    try:
-        moment = datetime.fromisoformat(text)
-    except ValueError:
-        raise PageError(422, f"{name}: {text!r} is not a date or time such as "
-                             "2024-05-06T08:30") from None
-    if moment.tzinfo is None:
-        moment = moment.replace(tzinfo=UTC)
-    return int(moment.timestamp() * 1_000_000) * 1000
-
-
 def _cursor(text: str) -> tuple[int, ObjectId]:
     stamp, _, scene_id = text.partition("-")
-    if not stamp.isdigit() or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
+    digits = stamp.isascii() and stamp.isdigit()
+    if not digits or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
         raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
     return int(stamp), ObjectId(scene_id)

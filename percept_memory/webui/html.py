@@ -1,0 +1,78 @@
+"""What every HTML page shares: the Jinja2 templates, the response with its security headers,
+the error page, and the parsing of URL parameters (each bad one refused with a 404 or 422 page
+naming it, never a 500).
+
+Every page sends a Content-Security-Policy that allows nothing but this site's own images and
+style sheet; the live page alone may also run this site's scripts and open its event stream.
+Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+from bson import ObjectId
+from fastapi import Request
+from fastapi.responses import HTMLResponse
+from fastapi.templating import Jinja2Templates
+
+from . import render
+
+HERE = Path(__file__).parent
+CSP = ("default-src 'none'; img-src 'self'; style-src 'self'; form-action 'self'; "
+       "base-uri 'none'; frame-ancestors 'none'")
+SCRIPT_CSP = f"{CSP}; script-src 'self'; connect-src 'self'"
+"""The policy of a page that runs this site's own scripts (static files, never inline)."""
+LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
+               # the names of the scene's images, not their pixels
+               "images": {"$map": {"input": {"$objectToArray": {"$ifNull": ["$images", {}]}},
+                                   "in": "$$this.k"}}}
+"""What the lists of scenes read of a scene (macros.html: scene_row)."""
+
+templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
+templates.env.filters["time"] = render.time_of
+templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields)
+
+
+class PageError(Exception):
+    """A request a page cannot answer: shown as an HTML error page with this status."""
+
+    def __init__(self, status: int, message: str, problems: list[str] | None = None):
+        super().__init__(message)
+        self.status, self.message, self.problems = status, message, problems or []
+
+
+def page(request: Request, template: str, context: dict, status: int = 200,
+         policy: str = CSP) -> HTMLResponse:
+    return templates.TemplateResponse(request, template, context, status_code=status,
+                                      headers=headers(policy))
+
+
+def headers(policy: str = CSP) -> dict[str, str]:
+    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff"}
+
+
+def parse_id(text: str, kind: str) -> ObjectId:
+    if not ObjectId.is_valid(text):
+        raise PageError(404, f"no {kind} {text!r}: ids are 24 hexadecimal digits")
+    return ObjectId(text)
+
+
+def nanoseconds(text: str, name: str) -> int:
+    """An ISO 8601 date or time (UTC unless it says otherwise) as nanoseconds since the epoch."""
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError:
+        raise PageError(422, f"{name}: {text!r} is not a date or time such as "
+                             "2024-05-06T08:30") from None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return int(moment.timestamp() * 1_000_000) * 1000
+
+
+def bounded_int(text: str, name: str, low: int, high: int) -> int:
+    """A whole number from the URL within [low, high]."""
+    if not (text.isascii() and text.strip().isdigit()) or not low <= int(text) <= high:
+        raise PageError(422, f"{name}: {text!r} is not a whole number from {low} to {high}")
+    return int(text)

@@ -1,0 +1,104 @@
+"""The search page: clusters (observations) by text, regions, robots, a sphere or a box in the
+map frame, a time range and annotation field predicates, in one GET form whose fields are the
+query model's (queries/model.py: ClusterQuery), so the URL holds the query, can be shared, and
+`/search?text=cereal&region=table` asks what `/api/clusters?text=cereal&region=table` does.
+Results show as a grid of crops or as a list, a page at a time by the engine's cursor. A query
+the model refuses comes back as the form with each problem named (422), never a 500.
+"""
+
+from __future__ import annotations
+
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse
+from pydantic import ValidationError
+
+from percept_memory.converters import registered_types
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Annotation
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.ops import QueryError, QueryTimeout
+from percept_memory.queries.params import from_params
+
+from .html import PageError, page
+
+PAGE_SIZE = 48
+VIEWS = ("grid", "list")
+HINT_SKIPPED = {"id", "source"}
+
+
+def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
+    router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
+
+    @router.get("/search")
+    async def search_page(request: Request) -> HTMLResponse:
+        given = [(k, v) for k, v in request.query_params.multi_items() if v.strip()]
+        views = [v for k, v in given if k == "view"]
+        view = views[-1] if views else VIEWS[0]
+        if view not in VIEWS:
+            raise PageError(422, f"view: {view!r} is not one of {', '.join(VIEWS)}")
+        asked = [(k, v) for k, v in given if k != "view"]
+        context = {"view": view, "form": _form(asked), "problems": [], "hits": [],
+                   "crops": set(), "links": _links(asked, view), "next": None,
+                   **await run_in_threadpool(_choices, store)}
+        try:
+            query = from_params(ClusterQuery, asked if any(k == "limit" for k, _ in asked)
+                                else [*asked, ("limit", str(PAGE_SIZE))])
+            found = await run_in_threadpool(engine.clusters, query)
+        except ValidationError as error:
+            context["problems"] = [f"{'.'.join(map(str, e['loc'])) or 'query'}: {e['msg']}"
+                                   for e in error.errors(include_url=False)]
+            return page(request, "search.html", context, 422)
+        except QueryTimeout as error:
+            context["problems"] = [f"{error}: narrow the search"]
+            return page(request, "search.html", context, 503)
+        except QueryError as error:
+            context["problems"] = [str(error)]
+            return page(request, "search.html", context, 422)
+        context.update(hits=found.items, total=found.total,
+                       crops=await run_in_threadpool(_with_crops, store, found.items))
+        if found.next:
+            rest = [(k, v) for k, v in asked if k != "cursor"]
+            context["next"] = "/search?" + urlencode([*rest, ("cursor", found.next),
+                                                      ("view", view)])
+        return page(request, "search.html", context)
+
+    return router
+
+
+def _form(asked: list[tuple[str, str]]) -> dict[str, list[str]]:
+    """The values given for each field, to fill the form in again."""
+    form: dict[str, list[str]] = {}
+    for key, value in asked:
+        form.setdefault(key, []).append(value)
+    return form
+
+
+def _links(asked: list[tuple[str, str]], view: str) -> dict[str, str]:
+    """The same search shown each way, and from its first page."""
+    rest = [(k, v) for k, v in asked if k != "cursor"]
+    links = {name: "/search?" + urlencode([*asked, ("view", name)]) for name in VIEWS}
+    links["first"] = "/search?" + urlencode([*rest, ("view", view)])
+    return links
+
+
+def _choices(store: MemoryStore) -> dict:
+    """What the form offers: the regions and robots stored (index scans), and examples of
+    predicates on the registered annotation types' fields."""
+    predicates = sorted(
+        f"{cls.__name__.casefold()}:{field}="
+        for cls in registered_types().values() if issubclass(cls, Annotation)
+        for field in cls.model_fields if field not in HINT_SKIPPED)
+    return {"regions": sorted(r for r in store.clusters.distinct("search.region") if r),
+            "robots": sorted(r for r in store.clusters.distinct("search.robot") if r),
+            "predicates": predicates}
+
+
+def _with_crops(store: MemoryStore, hits: list) -> set:
+    """The ids of the hits that have an image crop to show."""
+    found = store.clusters.find({"_id": {"$in": [h.id for h in hits]},
+                                 "hypotheses": {"$elemMatch": {"crop": {"$ne": None}}}}, {"_id": 1})
+    return {doc["_id"] for doc in found}

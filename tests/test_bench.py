@@ -19,6 +19,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
      {"in_process", "http"}),
     ("identity.py", ["--scenes-per-level", "40", "--levels", "0.025"], {"levels"}),
     ("queries.py", ["--clusters", "3000", "--samples", "3"], {"queries"}),
+    ("export.py", ["--clusters", "300", "--sizes", "100,300", "--formats", "imagefolder"],
+     {"exports"}),
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("webui.py", ["--repeat", "2", "--search-clusters", "3000"],

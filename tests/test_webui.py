@@ -552,3 +552,28 @@ def test_no_parameter_value_gives_a_server_error(client):
             for value in NASTY:
                 response = client.get(path, params={name: value})
                 assert response.status_code < 500, (path, name, value, response.text[-500:])
+
+
+def test_a_search_exports_its_results_as_training_data(client):
+    """The search page's export form carries the search's filter to /api/export: the zip
+    holds exactly the observations the search found."""
+    import io
+    import json
+    import re
+    import zipfile
+
+    page = client.get("/search?text=cereal&sort=newest").text
+    form = page[page.index('action="/api/export"'):]
+    form = form[:form.index("</form>")]
+    hidden = re.findall(r'type="hidden" name="([^"]+)" value="([^"]*)"', form)
+    assert ("text", "cereal") in hidden and all(name != "sort" for name, _ in hidden)
+    total = client.get("/api/clusters", params={"text": "cereal", "count": "true"}).json()["total"]
+
+    response = client.get("/api/export", params=[*hidden, ("format", "imagefolder"),
+                                                  ("images", ""), ("label", "object")])
+    assert response.status_code == 200
+    archive = zipfile.ZipFile(io.BytesIO(response.content))
+    manifest = json.loads(archive.read("manifest.json"))
+    provenance = archive.read("provenance.jsonl").decode().splitlines()
+    assert manifest["query"]["text"] == "cereal" and total > 0 and provenance
+    assert len(provenance) + sum(manifest.get("skipped", {}).values()) == total

@@ -48,7 +48,9 @@ def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
                 openapi_extra={"parameters": query_parameters(ExportQuery)})
     async def export_by_query_string(request: Request) -> StreamingResponse:
         try:
-            query = from_params(ExportQuery, request.query_params.multi_items())
+            # a blank value is an option left unset (as HTML forms send them)
+            query = from_params(ExportQuery, [(k, v) for k, v in
+                                              request.query_params.multi_items() if v.strip()])
         except ValidationError as error:
             raise RequestValidationError(error.errors(include_url=False)) from None
         return await run_in_threadpool(started, query)

@@ -58,7 +58,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         except QueryError as error:
             context["problems"] = [str(error)]
             return page(request, "search.html", context, 422)
-        context.update(hits=found.items, total=found.total,
+        context.update(hits=found.items, total=found.total, export=_exported(asked),
                        crops=await run_in_threadpool(_with_crops, store, found.items))
         if found.next:
             rest = [(k, v) for k, v in asked if k != "cursor"]
@@ -83,6 +83,12 @@ def _links(asked: list[tuple[str, str]], view: str) -> dict[str, str]:
     links = {name: "/search?" + urlencode([*asked, ("view", name)]) for name in VIEWS}
     links["first"] = "/search?" + urlencode([*rest, ("view", view)])
     return links
+
+
+def _exported(asked: list[tuple[str, str]]) -> list[tuple[str, str]]:
+    """The filter of the search, for the export form: everything but paging and order (an
+    export takes every match, oldest first)."""
+    return [(k, v) for k, v in asked if k not in ("cursor", "sort", "limit")]
 
 
 def _choices(store: MemoryStore) -> dict:

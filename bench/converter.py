@@ -16,10 +16,7 @@ embedded mongod, in a scratch database that is dropped afterwards)
 from __future__ import annotations
 
 import argparse
-import json
-import secrets
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -28,12 +25,12 @@ import cv2
 import numpy as np
 from rich.console import Console
 from rich.progress import Progress
+from scratch import print_json, scratch_store
 
 from percept_memory.converters import DecodeContext, EncodeContext, decode, encode
 from percept_memory.ingest import synthetic
 from percept_memory.memory import documents
 from percept_memory.memory.schema import CLUSTERS, INDEXES, SCENES
-from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 
 KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples/kitchen"
@@ -80,8 +77,11 @@ def converter_throughput(count: int, image, progress: Progress) -> dict:
 
 
 def store_overhead(count: int, image, progress: Progress) -> dict:
-    settings = Settings(db=f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
+    with scratch_store() as store:
+        return _store_overhead(store, count, image, progress)
+
+
+def _store_overhead(store: MemoryStore, count: int, image, progress: Progress) -> dict:
     raw_scenes, raw_clusters = store.db["raw_" + SCENES], store.db["raw_" + CLUSTERS]
     raw_scenes.create_indexes(INDEXES[SCENES])
     raw_clusters.create_indexes(INDEXES[CLUSTERS])
@@ -94,19 +94,15 @@ def store_overhead(count: int, image, progress: Progress) -> dict:
 
     ours, raw = [], []
     task = progress.add_task("scenes", total=count)
-    try:
-        store.put_scene(synthetic.scene(rng, next(stamps), 6, image))  # warm up the catalogue
-        for _ in range(count):  # alternate, so both meet the same journal flushes and GC
-            scene = synthetic.scene(rng, next(stamps), 6, image)
-            ours.append(timed(store.put_scene, [scene]))
-            other = synthetic.scene(rng, next(stamps), 6, image)
-            documents.assign_ids(other)
-            written = documents.scene_documents([other], settings.gridfs_threshold)
-            raw.append(timed(raw_insert, [written]))
-            progress.advance(task)
-    finally:
-        store.client.drop_database(settings.db)
-        store.close()
+    store.put_scene(synthetic.scene(rng, next(stamps), 6, image))  # warm up the catalogue
+    for _ in range(count):  # alternate, so both meet the same journal flushes and GC
+        scene = synthetic.scene(rng, next(stamps), 6, image)
+        ours.append(timed(store.put_scene, [scene]))
+        other = synthetic.scene(rng, next(stamps), 6, image)
+        documents.assign_ids(other)
+        written = documents.scene_documents([other], store.gridfs_threshold)
+        raw.append(timed(raw_insert, [written]))
+        progress.advance(task)
     ratio = statistics.median(ours) / statistics.median(raw)
     return {
         "scenes": count,
@@ -137,8 +133,7 @@ def main() -> None:
             "codec": converter_throughput(args.clusters, image, progress),
             "store": store_overhead(args.scenes, image, progress),
         }
-    json.dump(result, sys.stdout, indent=2)
-    print()
+    print_json(result)
 
 
 if __name__ == "__main__":

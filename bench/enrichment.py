@@ -26,12 +26,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
-import secrets
 import signal
 import statistics
-import sys
 import time
 from pathlib import Path
 
@@ -40,6 +37,7 @@ import numpy as np
 from pymongo import MongoClient
 from rich.console import Console
 from rich.progress import Progress
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest import kitchen_week, rgbd, synthetic
 from percept_memory.ingest.jobs import LookupEnqueuer
@@ -50,28 +48,11 @@ from percept_memory.ingest.workers import run_worker, worker_processes
 from percept_memory.memory.mongod import resolve_uri
 from percept_memory.memory.schema import JOBS
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Cluster, Image, ImageROI, Scene
 
 SAMPLES = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples"
 KITCHEN = next((SAMPLES / "kitchen").glob("rgb_*.png"), None)
 RADII = (6, 8, 10, 12, 14, 16)
-
-
-class Scratch:
-    """A store on a fresh database, dropped on exit."""
-
-    def __init__(self, uri: str, **settings):
-        self.settings = Settings(MONGODB_URI=uri, db=f"pmem_bench_{secrets.token_hex(4)}",
-                                 **settings)
-
-    def __enter__(self) -> MemoryStore:
-        self.store = MemoryStore.open(self.settings)
-        return self.store
-
-    def __exit__(self, *exc) -> None:
-        self.store.client.drop_database(self.settings.db)
-        self.store.close()
 
 
 async def work_off(settings: Settings, concurrency: int) -> tuple[dict, float]:
@@ -105,7 +86,7 @@ def lookups_per_s(uri: str, slots: list[int], jobs_per_slot: int, progress: Prog
     for concurrency in slots:
         jobs = max(20, jobs_per_slot * concurrency)
         task = progress.add_task(f"lookups, {concurrency} in flight", total=None)
-        with Scratch(uri) as store:
+        with scratch_store(MONGODB_URI=uri) as store:
             IngestService(store, after_store=[LookupEnqueuer(store)]).ingest_batch(
                 noise_scenes(jobs // 4, 4, seed=concurrency))
             counts, seconds = asyncio.run(work_off(Settings(
@@ -122,7 +103,7 @@ def lookups_per_s(uri: str, slots: list[int], jobs_per_slot: int, progress: Prog
 def ingest_rate(uri: str, scenes: int, progress: Progress, runs: int = 3) -> dict:
     image = cv2.imread(str(KITCHEN)) if KITCHEN else None
     rng = np.random.default_rng(7)
-    with Scratch(uri) as store:
+    with scratch_store(MONGODB_URI=uri) as store:
         service = IngestService(store, after_store=[LookupEnqueuer(store)])
         service.ingest_batch([synthetic.scene(rng, i, 6, image) for i in range(200)])  # backlog
         stamp = [10**15]
@@ -160,7 +141,7 @@ def ingest_rate(uri: str, scenes: int, progress: Progress, runs: int = 3) -> dic
 
 def kitchen_week_cache(uri: str, days: int, progress: Progress) -> dict:
     task = progress.add_task(f"kitchen week ({days} days) lookups", total=None)
-    with Scratch(uri) as store:
+    with scratch_store(MONGODB_URI=uri) as store:
         scenes = kitchen_week.generate(days=days).scenes
         IngestService(store, after_store=[LookupEnqueuer(store)]).ingest_batch(scenes)
         counts, seconds = asyncio.run(work_off(Settings(MONGODB_URI=uri, db=store.db.name),
@@ -276,8 +257,7 @@ def main() -> None:
             "kitchen_week_cache": kitchen_week_cache(uri, args.days, progress),
             "ingest": ingest_rate(uri, args.scenes, progress),
         }
-    json.dump(result, sys.stdout, indent=2)
-    print()
+    print_json(result)
 
 
 if __name__ == "__main__":

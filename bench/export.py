@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import secrets
 import subprocess
 import sys
 import time
@@ -28,6 +27,7 @@ import time
 from bson import ObjectId
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest import kitchen_week as kw
 from percept_memory.memory import documents
@@ -126,36 +126,27 @@ def main() -> None:
         db, fmt, size = args.measure
         json.dump(measure(db, fmt, int(size)), sys.stdout)
         return
-    settings = Settings(db=args.keep or f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
-    try:
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TimeElapsedColumn(), console=Console(stderr=True),
-                      transient=True) as progress:
-            start = time.perf_counter()
-            reuse = args.keep and store.clusters.estimated_document_count() == args.clusters
-            if not reuse:
-                store.clusters.delete_many({})
-                store.scenes.delete_many({})
-                build(store, args.clusters, progress)
-            built = time.perf_counter() - start
-            runs = []
-            plan = [(f, int(s)) for f in args.formats.split(",") for s in args.sizes.split(",")]
-            task = progress.add_task("exports", total=len(plan))
-            for fmt, size in plan:
-                child = subprocess.run(
-                    [sys.executable, __file__, "--measure", settings.db, fmt, str(size)],
-                    check=True, capture_output=True, text=True)
-                runs.append(json.loads(child.stdout))
-                progress.advance(task)
-    finally:
-        if not args.keep:
-            store.client.drop_database(settings.db)
-        store.close()
-    json.dump({"benchmark": "export", "clusters_in_store": args.clusters,
-               "build_s": None if reuse else round(built, 1), "exports": runs},
-              sys.stdout, indent=2)
-    print()
+    with scratch_store(args.keep) as store, Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TimeElapsedColumn(), console=Console(stderr=True), transient=True) as progress:
+        start = time.perf_counter()
+        reuse = args.keep and store.clusters.estimated_document_count() == args.clusters
+        if not reuse:
+            store.clusters.delete_many({})
+            store.scenes.delete_many({})
+            build(store, args.clusters, progress)
+        built = time.perf_counter() - start
+        runs = []
+        plan = [(f, int(s)) for f in args.formats.split(",") for s in args.sizes.split(",")]
+        task = progress.add_task("exports", total=len(plan))
+        for fmt, size in plan:
+            child = subprocess.run(
+                [sys.executable, __file__, "--measure", store.db.name, fmt, str(size)],
+                check=True, capture_output=True, text=True)
+            runs.append(json.loads(child.stdout))
+            progress.advance(task)
+    print_json({"benchmark": "export", "clusters_in_store": args.clusters,
+                "build_s": None if reuse else round(built, 1), "exports": runs})
 
 
 if __name__ == "__main__":

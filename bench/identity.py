@@ -50,17 +50,17 @@ Usage: python bench/identity.py [--direct] [--scenes-per-level 800] [--levels 0.
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import secrets
 import sys
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
 from rich.console import Console
 from rich.progress import Progress
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory import schema
@@ -75,7 +75,6 @@ from percept_memory.memory.identity import (
     gaussian,
     resolve,
 )
-from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import (
     Annotation,
@@ -559,20 +558,15 @@ def main(argv: list[str] | None = None) -> int:
     levels: dict[str, Any] = {}
     timings: list[tuple[int, float]] = []
     started = time.perf_counter()
-    settings = Settings(db=f"pmem_bench_identity_{secrets.token_hex(4)}")
-    store = None if args.direct else MemoryStore.open(settings)
-    decider = Direct(params) if store is None else ThroughIngest(params, store)
-    try:
+    with ExitStack() as stack:
+        decider = (Direct(params) if args.direct else
+                   ThroughIngest(params, stack.enter_context(scratch_store())))
         with Progress(console=console, transient=True) as progress:
             for noise in args.levels:
                 score = evaluate(noise, decider, args.scenes_per_level, args.seed,
                                  args.view_jitter, progress)
                 levels[str(noise)] = report(noise, score)
                 timings += score.timings
-    finally:
-        if store is not None:
-            store.client.drop_database(settings.db)
-            store.close()
     lowest = levels[str(min(args.levels))]["old_clusters"]["diagonal"]
     result = {
         "protocol": {"tables": TABLES, "objects": OBJECTS, "actions": list(ACTIONS),
@@ -596,8 +590,7 @@ def main(argv: list[str] | None = None) -> int:
         "time_scaling_beyond_protocol": scaling(params),
         "seconds": round(time.perf_counter() - started, 1),
     }
-    json.dump(result, sys.stdout, indent=1)
-    print()
+    print_json(result, indent=1)
     return 0
 
 

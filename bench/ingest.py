@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import os
-import secrets
 import socket
 import subprocess
 import sys
@@ -26,10 +24,10 @@ import httpx2
 import numpy as np
 from rich.console import Console
 from rich.progress import Progress
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.service import IngestService
-from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 
 KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples/kitchen"
@@ -126,22 +124,16 @@ def main() -> None:
     parser.add_argument("--http-scenes", type=int, default=300)
     args = parser.parse_args()
     image = kitchen_image()
-    settings = Settings(db=f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
-    try:
-        with Progress(transient=True, console=Console(stderr=True)) as progress:
-            result = {
-                "benchmark": "ingest",
-                "clusters_per_scene": CLUSTERS,
-                "annotations_per_cluster": 20,
-                "in_process": in_process(store, args.scenes, args.batch, image, progress),
-                "http": over_http(settings.db, args.http_scenes, args.batch, image, progress),
-            }
-    finally:
-        store.client.drop_database(settings.db)
-        store.close()
-    json.dump(result, sys.stdout, indent=2)
-    print()
+    with scratch_store() as store, Progress(transient=True,
+                                            console=Console(stderr=True)) as progress:
+        result = {
+            "benchmark": "ingest",
+            "clusters_per_scene": CLUSTERS,
+            "annotations_per_cluster": 20,
+            "in_process": in_process(store, args.scenes, args.batch, image, progress),
+            "http": over_http(store.db.name, args.http_scenes, args.batch, image, progress),
+        }
+    print_json(result)
 
 
 if __name__ == "__main__":

@@ -19,21 +19,18 @@ Usage: python bench/queries.py [--clusters N] [--samples N] [--keep DB]
 from __future__ import annotations
 
 import argparse
-import json
-import secrets
 import statistics
-import sys
 import time
 
 import numpy as np
 from bson import ObjectId
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest import kitchen_week as kw
 from percept_memory.memory import documents, search_keys
 from percept_memory.memory.schema import CLUSTERS, EVENTS, OBJECTS
-from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore, vocabulary_upserts
 from percept_memory.queries.engine import QueryEngine
 
@@ -236,36 +233,28 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=200)
     parser.add_argument("--keep", metavar="DB", help="build into DB (once) and keep it")
     args = parser.parse_args()
-    settings = Settings(db=args.keep or f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
-    console = Console(stderr=True)
-    try:
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TimeElapsedColumn(), console=console, transient=True) as progress:
-            start = time.perf_counter()
-            reuse = args.keep and store.clusters.estimated_document_count() == args.clusters
-            if reuse:
-                world = World(np.random.default_rng(5), sorted(templates()))
-                world.place = [(0, tuple(doc["position"])) for doc in
-                               store.db[OBJECTS].find({}, {"position": 1})]
-            else:
-                world = build(store, args.clusters, progress)
-            built = time.perf_counter() - start
-            result = {
-                "benchmark": "queries",
-                "clusters": store.clusters.estimated_document_count(),
-                "events": store.db[EVENTS].estimated_document_count(),
-                "objects": store.db[OBJECTS].estimated_document_count(),
-                "build_s": None if reuse else round(built, 1),
-                "samples_per_type": args.samples,
-                "queries": measure(store, world, args.clusters, args.samples, progress),
-            }
-    finally:
-        if not args.keep:
-            store.client.drop_database(settings.db)
-        store.close()
-    json.dump(result, sys.stdout, indent=2)
-    print()
+    with scratch_store(args.keep) as store, Progress(
+            TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+            TimeElapsedColumn(), console=Console(stderr=True), transient=True) as progress:
+        start = time.perf_counter()
+        reuse = args.keep and store.clusters.estimated_document_count() == args.clusters
+        if reuse:
+            world = World(np.random.default_rng(5), sorted(templates()))
+            world.place = [(0, tuple(doc["position"])) for doc in
+                           store.db[OBJECTS].find({}, {"position": 1})]
+        else:
+            world = build(store, args.clusters, progress)
+        built = time.perf_counter() - start
+        result = {
+            "benchmark": "queries",
+            "clusters": store.clusters.estimated_document_count(),
+            "events": store.db[EVENTS].estimated_document_count(),
+            "objects": store.db[OBJECTS].estimated_document_count(),
+            "build_s": None if reuse else round(built, 1),
+            "samples_per_type": args.samples,
+            "queries": measure(store, world, args.clusters, args.samples, progress),
+        }
+    print_json(result)
 
 
 if __name__ == "__main__":

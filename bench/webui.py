@@ -18,11 +18,8 @@ from __future__ import annotations
 
 import argparse
 import html
-import json
 import re
-import secrets
 import statistics
-import sys
 import time
 from urllib.parse import urlencode
 
@@ -32,10 +29,10 @@ from ingest import kitchen_image  # bench/ingest.py, beside this file
 from queries import build  # bench/queries.py
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from scratch import print_json, scratch_store
 
 from percept_memory.ingest import synthetic
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image
 from percept_memory.webui.app import create_app
 
@@ -68,9 +65,7 @@ SEARCHES = {
 
 def search_pages(args: argparse.Namespace) -> dict:
     """Render times of the search page over a memory of args.search_clusters clusters."""
-    settings = Settings(db=args.keep or f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
-    try:
+    with scratch_store(args.keep) as store:
         start = time.perf_counter()
         reuse = args.keep and store.clusters.estimated_document_count() == args.search_clusters
         if not reuse:
@@ -79,7 +74,7 @@ def search_pages(args: argparse.Namespace) -> dict:
                           console=Console(stderr=True), transient=True) as progress:
                 build(store, args.search_clusters, progress)
         built = time.perf_counter() - start
-        client = TestClient(create_app(store, settings))
+        client = TestClient(create_app(store, Settings(db=store.db.name)))
         pages = {name: {**timed(client, path := "/search?" + urlencode(query), args.repeat),
                         "hits": client.get(path).text.count('class="hit"')}
                  for name, query in SEARCHES.items()}
@@ -88,10 +83,6 @@ def search_pages(args: argparse.Namespace) -> dict:
         pages["text_second_page"] = timed(client, second, args.repeat)
         return {"clusters": store.clusters.estimated_document_count(),
                 "build_s": None if reuse else round(built, 1), "pages": pages}
-    finally:
-        if not args.keep:
-            store.client.drop_database(settings.db)
-        store.close()
 
 
 def main() -> None:
@@ -105,13 +96,11 @@ def main() -> None:
     if image is not None:
         big.images["color"] = Image(data=image)
     others = [synthetic.scene(rng, STAMP + (i + 1) * 10**9, image=image) for i in range(200)]
-    settings = Settings(db=f"pmem_bench_{secrets.token_hex(4)}")
-    store = MemoryStore.open(settings)
-    try:
+    with scratch_store() as store:
         scenes = [big, *others]
         for start in range(0, len(scenes), BATCH):  # one transaction per batch
             store.put_scenes(scenes[start:start + BATCH])
-        client = TestClient(create_app(store, settings))
+        client = TestClient(create_app(store, Settings(db=store.db.name)))
         result = {
             "benchmark": "webui",
             "scene_page_20_clusters": timed(client, f"/scenes/{big.id}", args.repeat),
@@ -120,12 +109,8 @@ def main() -> None:
             "crop_png": timed(client, f"/img/clusters/{big.clusters[0].id}/crop", args.repeat),
             "scene_thumbnail_png": timed(client, f"/img/scenes/{big.id}/thumb", args.repeat),
         }
-    finally:
-        store.client.drop_database(settings.db)
-        store.close()
     result["search_page"] = search_pages(args)
-    json.dump(result, sys.stdout, indent=2)
-    print()
+    print_json(result)
 
 
 if __name__ == "__main__":

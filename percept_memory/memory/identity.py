@@ -67,13 +67,15 @@ class Parameters:
     # would in a plain geometric mean (thesis 6.1.2).
     evidence_floor: float = 0.056
     # What the calibration believes before it has seen anything: the typical similarity and
-    # proximity of two observations of one object, and of two different objects, each worth
-    # `prior_weight` observations; it then follows the last `memory` observations.
+    # proximity of two observations of one object, and of two different objects. Worth one
+    # observation: a start, which the sensor's own data outweigh from the first scenes (a
+    # heavier prior stays in the spread for hundreds of scenes and widens it). It then
+    # follows the last `memory` observations.
     look_same: float = 0.9
     look_different: float = 0.2
     place_same: float = 0.9
     place_different: float = 0.1
-    prior_weight: float = 10.0
+    prior_weight: float = 1.0
     memory: float = 500.0
     confident: float = 0.1424  # decisions at least this likely teach it what differs
 

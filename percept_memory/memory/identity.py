@@ -124,20 +124,28 @@ def gaussian(distance: float, sigma: float) -> float:
 def appearance(a: Sequence, b: Sequence, floor: float) -> float | None:
     """The geometric mean of the similarities of every evidence type both observations have
     (thesis 6.1.2), each at least `floor`; None when they share no comparable type."""
-    by_type: dict[type, list] = {}
-    for item in b:
-        by_type.setdefault(type(item), []).append(item)
-    scores = []
+    return _appearance(a, _by_type(b), floor)
+
+
+def _by_type(evidence: Sequence) -> dict[type, list]:
+    grouped: dict[type, list] = {}
+    for item in evidence:
+        grouped.setdefault(type(item), []).append(item)
+    return grouped
+
+
+def _appearance(a: Sequence, b: dict[type, list], floor: float) -> float | None:
+    log_sum, count = 0.0, 0
     for item in a:  # each piece of evidence counts with its best match of the same type
         similarity: Callable | None = getattr(type(item), "similarity", None)
-        values = [similarity(item, other) for other in by_type.get(type(item), ())
-                  ] if similarity else []
-        values = [v for v in values if v is not None]
+        if similarity is None or type(item) not in b:
+            continue
+        values = [v for v in (similarity(item, other) for other in b[type(item)])
+                  if v is not None]
         if values:
-            scores.append(min(max(float(max(values)), floor), 1.0))
-    if not scores:
-        return None
-    return float(np.exp(np.mean(np.log(scores))))
+            log_sum += math.log(min(max(float(max(values)), floor), 1.0))
+            count += 1
+    return math.exp(log_sum / count) if count else None
 
 
 def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
@@ -189,9 +197,10 @@ class Spread:
         shape = min(max(self.mean * self.mean / variance, 0.3), 50.0)
         return shape, self.mean / shape
 
-    def log_density(self, u: float) -> float:
+    def log_density(self, u):
+        """Of a value or an array of them."""
         shape, scale = self.gamma()
-        return ((shape - 1) * math.log(u) - u / scale - shape * math.log(scale)
+        return ((shape - 1) * np.log(u) - u / scale - shape * math.log(scale)
                 - math.lgamma(shape))
 
 
@@ -205,12 +214,15 @@ class Cue:
     same: Spread
     different: Spread
 
-    def odds(self, similarity: float | None) -> float:
-        if similarity is None:  # nothing to compare: no evidence either way
-            return 1.0
-        u = max(surprise(similarity), self._peak())
+    def odds(self, similarity):
+        """The likelihood ratio of a similarity (or of an array of them, NaN or None where
+        there is nothing to compare: no evidence either way, odds 1)."""
+        given = np.asarray(similarity, dtype=float)
+        u = np.maximum(-np.log(np.maximum(given, 1e-300)), max(U_MIN, self._peak()))
         log_odds = self.same.log_density(u) - self.different.log_density(u)
-        return math.exp(min(max(log_odds, -LOG_ODDS_LIMIT), LOG_ODDS_LIMIT))
+        odds = np.where(np.isnan(given), 1.0,
+                        np.exp(np.clip(log_odds, -LOG_ODDS_LIMIT, LOG_ODDS_LIMIT)))
+        return float(odds) if odds.ndim == 0 else odds
 
     def _peak(self) -> float:
         """Where the ratio of the two Gammas peaks: nearer than that is no less "the same"
@@ -269,17 +281,22 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     learns from the confident decisions; without one, the prior calibration is used."""
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
+    # the cues of every pair, then their odds at once
+    grouped = [_by_type(candidate.last.evidence) for candidate in known]
+    looks = np.array([[_appearance(observation.evidence, evidence, params.evidence_floor)
+                       for evidence in grouped] for observation in new], dtype=float)
+    places = np.array([[proximity(observation.position, candidate.last.position,
+                                  params.proximity_sigma) for candidate in known]
+                       for observation in new], dtype=float)
+    look_odds = calibration.look.odds(looks.reshape(len(new), len(known)))
+    place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
-    cues: dict[tuple[int, int], tuple[float | None, float | None]] = {}
-    for i, observation in enumerate(new):
+    for i in range(len(new)):
         row = []
         for j, candidate in enumerate(known):
-            s = appearance(observation.evidence, candidate.last.evidence, params.evidence_floor)
-            p = proximity(observation.position, candidate.last.position, params.proximity_sigma)
-            cues[i, j] = s, p
-            ways = explanations(calibration.look.odds(s), calibration.place.odds(p),
+            ways = explanations(float(look_odds[i, j]), float(place_odds[i, j]),
                                 candidate.in_view, params)
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
@@ -307,12 +324,12 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
-    _learn(calibration, decisions[:len(new)], assigned, cues, len(known), params)
+    _learn(calibration, decisions[:len(new)], assigned, looks, places, params)
     return decisions
 
 
 def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
-           cues: dict, known: int, params: Parameters) -> None:
+           looks: np.ndarray, places: np.ndarray, params: Parameters) -> None:
     """Teach the calibration with the decisions (soft EM): a stay shows how alike and how
     near one object seen twice is, each cue's value counted by how sure the current model is
     that it belongs to the same object rather than to a turned (newview) or moved one, so a
@@ -320,8 +337,9 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
     explained observation shows two different objects."""
     memory = params.memory
     for i, decision in enumerate(decisions):
-        for j in range(known):
-            look, place = cues[i, j]
+        for j in range(looks.shape[1]):
+            look = None if np.isnan(looks[i, j]) else float(looks[i, j])
+            place = None if np.isnan(places[i, j]) else float(places[i, j])
             if assigned.get(i) == j:
                 if decision.explanation is Explanation.STAY:
                     if look is not None:

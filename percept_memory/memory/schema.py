@@ -72,6 +72,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),
         IndexModel([("scene_id", ASCENDING)], name="scene"),
         IndexModel([("time", DESCENDING)], name="time"),
+        # the objects ever in a region by a time: what may be there (queries/questions.py)
+        IndexModel([("region", ASCENDING), ("object_id", ASCENDING), ("time", ASCENDING)],
+                   name="region_object_time"),
     ],
     JOBS: [  # ingest/jobs.py: claim the next due job; one job per kind per cluster; listings
         IndexModel([("due", ASCENDING)], name="due", sparse=True),

@@ -122,8 +122,7 @@ def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000)
             t = START + i * SECONDS_PER_CLUSTER * kw.SECOND + int(rng.integers(kw.SECOND))
             cluster_id, scene_id = ObjectId(), ObjectId()
             search = {**template["search"], "time": t, "robot": "pr2",
-                      "region": world.region_name(region), "position": position,
-                      "cells": search_keys.cells_of(position)}
+                      "region": world.region_name(region), **search_keys.place(position)}
             clusters.append({**template, "_id": cluster_id, "scene_id": scene_id,
                              "object_id": world.ids[o], "search": search})
             event = {"object_id": world.ids[o], "scene_id": scene_id, "cluster_id": cluster_id,

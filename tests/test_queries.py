@@ -169,6 +169,16 @@ def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
         assert engine.what_is_at(box=box, t=t) == engine.what_is_at(region=name, t=t)
 
 
+def test_what_is_at_a_region_looks_only_at_the_objects_ever_there(store, kitchen):
+    """The objects with an event in the region come from one distinct scan of its events, so
+    the question does not grow with the objects the memory knows elsewhere."""
+    plans: list = []
+    QueryEngine(store, explain=plans).what_is_at(region="table", t="2024-03-06T08:30")
+    candidates = plans[0]
+    assert candidates["collection"] == "events" and candidates["indexes"] == [
+        "region_object_time"] and "DISTINCT_SCAN" in candidates["stages"], candidates
+
+
 def test_an_object_out_of_view_is_hidden_there_until_its_place_is_seen_empty(empty_engine):
     """A mug on the table; the robot looks at the shelf (the mug is hidden on the table),
     then at the table without it (gone): what-is-at the table at each moment."""

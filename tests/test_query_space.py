@@ -94,3 +94,14 @@ def test_nearest_are_exact(space, a, offset, k):
 def test_more_neighbours_asked_than_there_are_gives_them_all(space):
     engine, by_id = space
     assert len(engine.clusters(near=(0, 0, 0), k=1000).items) == len(by_id)
+
+
+def test_the_nearest_are_ranked_from_the_index_alone(space, store):
+    """Candidates are ranked by the coordinates in the cells' index, without reading a
+    document; only the k winners are read."""
+    plans: list = []
+    hits = QueryEngine(store, explain=plans).clusters(near=(0, 0, 0), k=5).items
+    *ranking, reading = plans
+    assert len(hits) == 5 and ranking and reading["op"] == "Find"
+    for plan in ranking:
+        assert plan["indexes"] == ["cells_newest_xyz"] and "FETCH" not in plan["stages"], plan

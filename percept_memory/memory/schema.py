@@ -26,10 +26,11 @@ GRIDFS_CHUNKS = "fs.chunks"
 PLACE_LIMIT_M = 100_000.0  # the extent of a map: positions within +-100 km of its origin
 
 
-def _newest(*keys: str, name: str) -> IndexModel:
-    """An index on `keys` then newest first: (time, _id) descending."""
+def _newest(*keys: str, name: str, then: tuple[str, ...] = ()) -> IndexModel:
+    """An index on `keys` then newest first: (time, _id) descending; `then` after those, for
+    queries the index can answer without reading documents."""
     return IndexModel([*((key, ASCENDING) for key in keys), ("search.time", DESCENDING),
-                       ("_id", DESCENDING)], name=name)
+                       ("_id", DESCENDING), *((key, ASCENDING) for key in then)], name=name)
 
 
 INDEXES: dict[str, list[IndexModel]] = {
@@ -47,7 +48,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         _newest("search.region", name="region_newest"),
         _newest("search.robot", name="robot_newest"),
         _newest("search.terms", name="terms_newest"),
-        _newest("search.cells", name="cells_newest"),
+        # with the coordinates: the k nearest are ranked from the index alone (queries/space.py)
+        _newest("search.cells", name="cells_newest_xyz",
+                then=("search.x", "search.y", "search.z")),
         _newest("search.types", name="types_newest"),
         IndexModel([("search.fields.k", ASCENDING), ("search.fields.v", ASCENDING)],
                    name="fields"),
@@ -69,6 +72,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),
         IndexModel([("scene_id", ASCENDING)], name="scene"),
         IndexModel([("time", DESCENDING)], name="time"),
+        # the objects ever in a region by a time: what may be there (queries/questions.py)
+        IndexModel([("region", ASCENDING), ("object_id", ASCENDING), ("time", ASCENDING)],
+                   name="region_object_time"),
     ],
     JOBS: [  # ingest/jobs.py: claim the next due job; one job per kind per cluster; listings
         IndexModel([("due", ASCENDING)], name="due", sparse=True),

@@ -4,7 +4,9 @@
   misspelt word's neighbours in the vocabulary;
 - cells: 3D voxel keys at several sizes (`search.cells`). MongoDB's geo indexes are 2D
   only, so a box, a sphere or the k nearest are found as the cells around them, then filtered
-  exactly by position;
+  exactly by position; x, y and z are kept as scalars beside them (`search.x`...), so that the
+  index of the cells holds the coordinates too and ranks the k nearest without reading a
+  document;
 - fields: every scalar field of every annotation as a {k: "type:path", v: value} pair
   (`search.fields`, the attribute pattern), so a predicate on any field of any type, known to
   this version or not, has index bounds.
@@ -63,6 +65,18 @@ def cells_of(position: Iterable[float] | None) -> list[str]:
     return [cell(level, cell_index(level, point)) for level in range(len(CELL_SIZES))] + [
         EVERYWHERE
     ]
+
+
+AXES = ("x", "y", "z")
+
+
+def place(position: Iterable[float] | None) -> dict:
+    """The place keys of a position: the position itself, its cells and its coordinates as
+    scalars (an index can hold scalars, not the elements of an array beside the cells)."""
+    if position is None:
+        return {"position": None, "cells": []}
+    point = [*position]
+    return {"position": point, "cells": cells_of(point), **dict(zip(AXES, point, strict=True))}
 
 
 def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) -> list[str]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from percept_memory.memory.schema import CLUSTERS
-from percept_memory.memory.search_keys import EVERYWHERE
+from percept_memory.memory.search_keys import AXES, EVERYWHERE
 
 from .compile import (
     cluster_filter,
@@ -23,6 +23,7 @@ from .text import TextQuery, expand, score_expression
 RANK_WINDOW = 300  # relevance ranks the most recent this many text matches
 HIT_FIELDS = {"scene_id": 1, "object_id": 1, **{f"search.{key}": 1 for key in (
     "time", "robot", "region", "position", "labels", "text", "types")}}
+COORDINATES = [f"$search.{axis}" for axis in AXES]  # scalars the cells' index holds
 
 
 def compiled(f: ClusterFilter) -> Plan[tuple[dict, dict | None]]:
@@ -67,15 +68,21 @@ def find_clusters(query: ClusterQuery) -> Plan[ClusterPage]:
 def nearest(match: dict, point, k: int) -> Plan[list[ClusterHit]]:
     """The k matching clusters nearest to the point, nearest first: the cubes of cells around
     it grow until the k-th nearest candidate lies within the radius the cube covers, so no
-    cluster outside the cube can be nearer."""
+    cluster outside the cube can be nearer. Candidates are ranked by the coordinates the
+    cells' index holds (without reading their documents when nothing else is asked), and
+    only the k found are read."""
     for keys, covered in shells(point):
-        docs = yield Aggregate(CLUSTERS, [
+        ranked = yield Aggregate(CLUSTERS, [
             {"$match": conjunction([match, {"search.cells": {"$in": keys}}])},
-            {"$project": {**HIT_FIELDS, "d2": squared_distance(point, "search.position")}},
-            {"$sort": {"d2": 1, "search.time": -1, "_id": -1}},
+            {"$project": {"time": "$search.time", "d2": squared_distance(point, COORDINATES)}},
+            {"$sort": {"d2": 1, "time": -1, "_id": -1}},
             {"$limit": k},
         ])
-        if keys == [EVERYWHERE] or (len(docs) == k and
-                                    math.sqrt(docs[-1]["d2"]) < covered * (1 - 1e-9)):
+        if keys == [EVERYWHERE] or (len(ranked) == k and
+                                    math.sqrt(ranked[-1]["d2"]) < covered * (1 - 1e-9)):
             break
-    return [ClusterHit.of({**d, "distance": math.sqrt(d["d2"])}) for d in docs]
+    if not ranked:
+        return []
+    found = yield Find(CLUSTERS, {"_id": {"$in": [r["_id"] for r in ranked]}}, HIT_FIELDS)
+    docs = {d["_id"]: d for d in found}
+    return [ClusterHit.of({**docs[r["_id"]], "distance": math.sqrt(r["d2"])}) for r in ranked]

@@ -168,12 +168,13 @@ def _belief(o: dict, match: float, confidence: float | None = None,
 # --- what is at a place, what changed there --------------------------------------------------
 
 
-def latest_events(objects: dict | None, t: int, place: Place | None = None) -> Plan[list[dict]]:
-    """The belief about each object at time t (its last event at or before t), of the given
-    objects or of all; with a place, only the objects believed there then (present or
-    hidden). One index seek per object (DISTINCT_SCAN on events' object_time index)."""
+def latest_events(objects: dict, t: int, place: Place | None = None) -> Plan[list[dict]]:
+    """The belief about each object at time t (its last event at or before t), of the
+    objects whose ids meet the condition; with a place, only the objects believed there then
+    (present or hidden). One index seek per object (DISTINCT_SCAN on events' object_time
+    index)."""
     pipeline: list[dict] = [
-        {"$match": {"object_id": objects or {"$gte": MinKey()}, "time": {"$lte": t}}},
+        {"$match": {"object_id": objects, "time": {"$lte": t}}},
         {"$sort": {"object_id": 1, "time": -1}},
         {"$group": {"_id": "$object_id", "event": {"$first": "$$ROOT"}}},
         {"$replaceWith": "$event"},
@@ -181,6 +182,20 @@ def latest_events(objects: dict | None, t: int, place: Place | None = None) -> P
     if place is not None:
         pipeline.append({"$match": {**_at(place), "explanation": {"$ne": "disappear"}}})
     return (yield Aggregate(EVENTS, pipeline))
+
+
+def ever_at(place: Place, t: int) -> Plan[dict]:
+    """A condition on object ids that every object believed at the place at t meets: for a
+    region, an event there by t (one index seek per object ever there, however many objects
+    the memory knows elsewhere); for a volume, any object."""
+    if place.region is None:
+        return {"$gte": MinKey()}
+    found = yield Aggregate(EVENTS, [
+        {"$match": {"region": place.region, "time": {"$lte": t}}},
+        {"$sort": {"region": 1, "object_id": 1}},
+        {"$group": {"_id": "$object_id"}},
+    ])
+    return {"$in": [doc["_id"] for doc in found]}
 
 
 def _at(place: Place) -> dict:
@@ -192,7 +207,7 @@ def _at(place: Place) -> dict:
 def what_is_at(q: AtTime) -> Plan[Contents]:
     """The objects believed at the place at time t (default now), present or hidden."""
     t = NOW if q.t is None else q.t
-    believed = yield from latest_events(None, t, q)
+    believed = yield from latest_events((yield from ever_at(q, t)), t, q)
     names = yield from names_of([e["object_id"] for e in believed])
     return Contents(t=t, objects=_objects_at(believed, names))
 
@@ -202,8 +217,9 @@ def changes(q: Between) -> Plan[Changes]:
     there, that disappeared from there (and where they went), that moved within it. Net
     changes: an object that came and went in between is not listed."""
     t2 = NOW if q.t2 is None else q.t2
-    before = {e["object_id"]: e for e in (yield from latest_events(None, q.t1, q))}
-    after = {e["object_id"]: e for e in (yield from latest_events(None, t2, q))}
+    candidates = yield from ever_at(q, t2)  # (those of t1 among them)
+    before = {e["object_id"]: e for e in (yield from latest_events(candidates, q.t1, q))}
+    after = {e["object_id"]: e for e in (yield from latest_events(candidates, t2, q))}
     gone = [o for o in before if o not in after]
     went = {e["object_id"]: e for e in (yield from latest_events({"$in": gone}, t2))}
     stayed = [o for o in before if o in after]

@@ -45,11 +45,15 @@ def inside_box(box: Box, position: str) -> dict:
             for axis in range(3)}
 
 
-def squared_distance(point, position: str) -> dict:
-    """((dx*dx + dy*dy) + dz*dz) from a position field [x, y, z] to a point: the same
-    arithmetic, in the same order, as `squared_distance_py`."""
-    deltas = [{"$subtract": [{"$arrayElemAt": [f"${position}", axis]}, float(point[axis])]}
-              for axis in range(3)]
+def elements(position: str) -> list[dict]:
+    """The coordinates of a position field [x, y, z], as expressions."""
+    return [{"$arrayElemAt": [f"${position}", axis]} for axis in range(3)]
+
+
+def squared_distance(point, coordinates: list) -> dict:
+    """((dx*dx + dy*dy) + dz*dz) from coordinates (expressions of x, y, z) to a point: the
+    same arithmetic, in the same order, as `squared_distance_py`."""
+    deltas = [{"$subtract": [coordinates[axis], float(point[axis])]} for axis in range(3)]
     squares = [{"$multiply": [d, d]} for d in deltas]
     return _plus(_plus(squares[0], squares[1]), squares[2])
 
@@ -70,7 +74,7 @@ def inside_sphere(sphere: Sphere, position: str) -> dict:
     sphere's bounding box (which lets plain range conditions narrow the candidates first)."""
     low, high = corners(sphere)
     return {**inside_box(Box(low=low, high=high), position),
-            "$expr": {"$lte": [squared_distance(sphere.center, position),
+            "$expr": {"$lte": [squared_distance(sphere.center, elements(position)),
                                sphere.radius * sphere.radius]}}
 
 

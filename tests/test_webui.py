@@ -16,6 +16,7 @@ import time
 from collections import Counter
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from urllib.parse import urlencode
 
 import numpy as np
 import pytest
@@ -33,16 +34,20 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import (
     Classification,
     Cluster,
+    GroundTruth,
     ImageROI,
     LogLine,
     Scene,
     Text,
+    Unknown,
     WebLookup,
 )
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
 from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
+from percept_memory.webui.html import nanoseconds
+from percept_memory.webui.scene_log import CHOICES
 
 from .conftest import ROBOSHERLOCK
 
@@ -393,6 +398,8 @@ def test_every_page_sends_a_content_security_policy(client, week, hostile):
     ("/img/scenes/nonsense/thumb", 404), (f"/img/clusters/{ObjectId()}/crop", 404),
     ("/?since=yesterday", 422), ("/?until=2024-13-01", 422), ("/?before=123", 422),
     ("/?before=99999999999999999999-0123456789abcdef01234567", 422), ("/?before=-", 422),
+    ("/?type=nonsense", 422), ("/?type=pm.scene.Scene", 422), ("/?type=pm.annotation.LogLin", 422),
+    ("/?region=shelf&since=soon", 422),
 ])
 def test_bad_urls_get_a_page_naming_the_problem(client, path, status):
     response = client.get(path)
@@ -413,15 +420,22 @@ def older_link(body: str) -> str | None:
     return html.unescape(found.group(1)) if found else None
 
 
+def walk_scene_log(client, path: str) -> tuple[list[ObjectId], int]:
+    """Every scene the scene log shows from `path` on, following "older scenes"; and how
+    many pages that took."""
+    seen, pages = [], 0
+    while path:
+        response = client.get(path)
+        assert response.status_code == 200, response.text
+        seen += [ObjectId(s) for s in re.findall(r'data-scene="([0-9a-f]{24})"', response.text)]
+        path, pages = older_link(response.text), pages + 1
+    return seen, pages
+
+
 def test_pages_walk_every_scene_once_newest_first(client, store):
     expected = [d["_id"] for d in store.scenes.find({}, {"_id": 1}).sort(
         [("timestamp", -1), ("_id", -1)])]
-    seen, path = [], "/"
-    while path:
-        body = client.get(path).text
-        seen += [ObjectId(s) for s in re.findall(r'data-scene="([0-9a-f]{24})"', body)]
-        path = older_link(body)
-    assert seen == expected
+    assert walk_scene_log(client, "/")[0] == expected
 
 
 def test_filters_by_robot_and_time(client, week):
@@ -433,6 +447,84 @@ def test_filters_by_robot_and_time(client, week):
     body = client.get("/", params={"since": since, "until": until}).text
     shown = re.findall(r'data-scene="([0-9a-f]{24})"', body)
     assert shown == [str(s.id) for s in reversed(middle)]
+
+
+def facets_of(scene: Scene) -> dict[str, set[str]]:
+    """What a scene offers each scene log filter, worked out from the scene itself."""
+    annotations = [*scene.annotations, *(a for c in scene.clusters for a in c.annotations)]
+    sources = [a.fields.get("source") if isinstance(a, Unknown) else a.source
+               for a in [*annotations, *scene.log]]
+    return {"robot": {scene.robot}, "region": {c.region for c in scene.clusters} - {None},
+            "annotator": set(sources) - {None, ""},
+            "type": {render.type_name(a) for a in annotations}}
+
+
+def brute_force_scene_log(store, **wanted: str) -> list[ObjectId]:
+    """The scenes the log should show for these filters (since/until in nanoseconds), newest
+    first, by reading every stored scene."""
+    scenes = [store.get_scene(d["_id"]) for d in store.scenes.find({}, {"_id": 1})]
+    since, until = wanted.pop("since", 0), wanted.pop("until", 2**63)
+    chosen = [s for s in scenes if since <= s.timestamp <= until
+              and all(value in facets_of(s)[name] for name, value in wanted.items())]
+    return [s.id for s in sorted(chosen, key=lambda s: (s.timestamp, s.id), reverse=True)]
+
+
+def test_each_scene_log_filter_shows_every_match_once_in_order(client, store, week):
+    facets: dict[str, set[str]] = {}
+    for doc in store.scenes.find({}, {"_id": 1}):
+        for name, values in facets_of(store.get_scene(doc["_id"])).items():
+            facets.setdefault(name, set()).update(values)
+    assert {"counter_top_sink", "shelf"} <= facets["region"]
+    assert {"OCRAnnotator", "MalloryNet"} <= facets["annotator"]
+    assert {"pm.annotation.Logo", "rs.annotation.Segment"} <= facets["type"]
+    several_pages = 0
+    for name in ("region", "annotator", "type"):
+        for value in sorted(facets[name]):
+            seen, pages = walk_scene_log(client, "/scenes?" + urlencode({name: value}))
+            assert seen == brute_force_scene_log(store, **{name: value}), (name, value)
+            several_pages += pages > 1
+    assert several_pages >= 3, "some filter should need more than one page"
+    times = sorted(s.timestamp for s in week.scenes)
+    combined = {"robot": week.scenes[0].robot, "region": "counter_top_sink",
+                "annotator": "OCRAnnotator", "type": "pm.annotation.Text"}
+    since, until = kitchen_week_time(times[5]), kitchen_week_time(times[-5])
+    seen, _ = walk_scene_log(client, "/scenes?" + urlencode(
+        {**combined, "since": since, "until": until}))
+    expected = brute_force_scene_log(store, **combined, since=nanoseconds(since, "since"),
+                                     until=nanoseconds(until, "until"))
+    assert seen == expected and expected
+
+
+def test_scene_log_filters_are_index_backed(store):
+    """Newest first without an in-memory sort, unfiltered or by any one filter."""
+    for name, key in [*CHOICES.items(), ("none", None)]:
+        found = store.scenes.find({key: "x"} if key else {})
+        plan = found.sort([("timestamp", -1), ("_id", -1)]).limit(21).explain()
+        plan = plan["queryPlanner"]["winningPlan"]
+        assert "IXSCAN" in str(plan) and "'SORT'" not in str(plan), (name, plan)
+
+
+def test_a_scene_log_filter_follows_annotations_added_later(client, store):
+    """An enrichment worker appends annotations to stored clusters: the scene is then found
+    by the new annotator and the new type."""
+    scene = synthetic.scene(np.random.default_rng(11), HOSTILE_STAMP - 7200 * 10**9,
+                            clusters=2, robot="enriched-bot")
+    store.put_scene(scene)
+    wanted = {"annotator": "LateLabeller", "type": "pm.annotation.GroundTruth"}
+    for name, value in wanted.items():
+        assert scene.id not in walk_scene_log(client, "/scenes?" + urlencode({name: value}))[0]
+    store.add_annotation(scene.clusters[1].id, GroundTruth(class_name="mug",
+                                                           source="LateLabeller"))
+    for name, value in wanted.items():
+        seen, _ = walk_scene_log(client, "/scenes?" + urlencode({name: value}))
+        assert scene.id in seen and seen == brute_force_scene_log(store, **{name: value})
+
+
+def test_a_scene_log_type_may_be_named_by_an_alias(client):
+    canonical = client.get("/scenes", params={"type": "pm.annotation.Classification"}).text
+    alias = client.get("/scenes", params={"type": "rs.annotation.Classification"}).text
+    assert re.findall(r'data-scene="([0-9a-f]{24})"', canonical) == \
+        re.findall(r'data-scene="([0-9a-f]{24})"', alias) != []
 
 
 def kitchen_week_time(stamp: int) -> str:
@@ -542,7 +634,8 @@ NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '
          "classification:confidence>nan"]
 PARAMETERS = {
     "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
-    "/annotators": ["scenes", "robot"], "/scenes": ["robot", "since", "until", "before"],
+    "/annotators": ["scenes", "robot"],
+    "/scenes": ["robot", "region", "annotator", "type", "since", "until", "before"],
 }
 
 

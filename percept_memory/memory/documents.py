@@ -133,14 +133,33 @@ def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
         doc = out.encode(scene.model_copy(update={"clusters": []}), threshold)  # stored apart
         doc["clusters"] = [c.id for c in scene.clusters]
         doc["time"] = datetime_from_timestamp(scene.timestamp)
-        doc[SUMMARY_KEY] = {
-            "clusters": len(clusters),
-            "labels": sorted({label for c in clusters for label in c[SEARCH_KEY]["labels"]}),
-            "regions": sorted({c[SEARCH_KEY]["region"] for c in clusters} - {None}),
-        }
+        doc[SUMMARY_KEY] = scene_summary(doc, clusters)
         out.scenes.append(doc)
         out.clusters.extend(clusters)
     return out
+
+
+SUMMARY_PROJECTION = {"log.source": 1, "annotations.source": 1, "annotations._type": 1,
+                      "search.labels": 1, "search.region": 1, "search.types": 1}
+"""What scene_summary reads of a scene document and of its cluster documents."""
+
+
+def scene_summary(scene_doc: Mapping, cluster_docs: Sequence[Mapping]) -> dict:
+    """The small inline summary of a scene: what its list row shows (cluster count, labels,
+    regions) and what the scene log filters by, each an indexed array (schema.py): its
+    regions, its annotators (the sources of its log lines and of all its annotations) and the
+    annotation types on it or on its clusters."""
+    searches = [c[SEARCH_KEY] for c in cluster_docs]
+    annotations = [a for d in (scene_doc, *cluster_docs) for a in d.get("annotations", ())]
+    sources = [*annotations, *scene_doc.get("log", ())]
+    return {
+        "clusters": len(cluster_docs),
+        "labels": sorted({label for s in searches for label in s["labels"]}),
+        "regions": sorted({s["region"] for s in searches} - {None}),
+        "annotators": sorted({a.get("source") for a in sources} - {None, ""}),
+        "types": sorted({t for s in searches for t in s["types"]}
+                        | {a["_type"] for a in scene_doc.get("annotations", ())}),
+    }
 
 
 def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Documents:

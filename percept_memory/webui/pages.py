@@ -1,6 +1,6 @@
-"""The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): the scene log,
-a scene with its image, cluster boxes, log, relations and annotations, a cluster, and an
-object's history; `mount_pages` adds them and the pages of the other modules (search, map,
+"""The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
+its image, cluster boxes, log, relations and annotations, a cluster, and an object's history;
+`mount_pages` adds them and the pages of the other modules (scene log, search, map,
 annotators, enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
 """
 
@@ -20,11 +20,10 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image, ImageROI, Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import annotators, belief_map, enrichment, live, render, search
-from .html import HERE, LIST_FIELDS, PageError, nanoseconds, page, parse_id
+from . import annotators, belief_map, enrichment, live, render, scene_log, search
+from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
-SCENES_PER_PAGE = 20
 EVENTS_SHOWN = 500
 THUMB_SIDE = 160
 
@@ -33,7 +32,7 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     """Add the pages, their images, style sheet and scripts to the app."""
     app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
     engine = QueryEngine(store, settings)
-    for router in (page_routes(store), search.routes(store, engine),
+    for router in (scene_log.routes(store), page_routes(store), search.routes(store, engine),
                    belief_map.routes(store, engine), annotators.routes(store, engine),
                    enrichment.routes(store), live.routes(store)):
         app.include_router(router)
@@ -50,41 +49,6 @@ def page_routes(store: MemoryStore) -> APIRouter:
     async def stored(get, text: str, kind: str):
         """The stored scene or cluster an URL names, or a 404 page."""
         return await run_in_threadpool(_found, get, parse_id(text, kind))
-
-    @router.get("/")
-    @router.get("/scenes")
-    async def scene_log(request: Request, robot: str = "", since: str = "", until: str = "",
-                        before: str = "") -> HTMLResponse:
-        """Scenes newest first, SCENES_PER_PAGE at a time; `before` is the cursor of the last
-        scene shown (its timestamp and id), so paging stays right while scenes arrive."""
-        query: dict = {}
-        if robot:
-            query["robot"] = robot
-        span = {op: nanoseconds(text, name) for op, text, name in
-                (("$gte", since, "since"), ("$lte", until, "until")) if text}
-        if span:
-            query["timestamp"] = span
-        if before:
-            stamp, scene_id = _cursor(before)
-            query = {"$and": [query, {"$or": [
-                {"timestamp": {"$lt": stamp}}, {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
-
-        def load() -> tuple[list[dict], list[str]]:
-            found = store.scenes.find(query, LIST_FIELDS).sort(
-                [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
-            return list(found), sorted(store.scenes.distinct("robot"))
-
-        scenes, robots = await run_in_threadpool(load)
-        older = None
-        if len(scenes) > SCENES_PER_PAGE:
-            scenes = scenes[:SCENES_PER_PAGE]
-            last = scenes[-1]
-            older = dict(robot=robot, since=since, until=until,
-                         before=f"{last['timestamp']}-{last['_id']}")
-        return page(request, "scenes.html", {
-            "scenes": scenes, "robots": robots, "older": older,
-            "filters": {"robot": robot, "since": since, "until": until},
-        })
 
     @router.get("/scenes/{scene_id}")
     async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
@@ -185,10 +149,3 @@ def _found(get, key: ObjectId):
     except NotFound as error:
         raise PageError(404, str(error)) from None
 
-
-def _cursor(text: str) -> tuple[int, ObjectId]:
-    stamp, _, scene_id = text.partition("-")
-    digits = stamp.isascii() and stamp.isdigit()
-    if not digits or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
-        raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
-    return int(stamp), ObjectId(scene_id)

@@ -44,6 +44,7 @@ from percept_memory.memory.types import (
 )
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
+from percept_memory.webui import history as history_page
 from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
@@ -218,6 +219,9 @@ def test_scene_log_to_scene_to_cluster_to_object_and_back(page, url, store, week
     kinds = Counter(e["explanation"] for e in history)
     for explanation, count in kinds.items():
         expect(page.locator(f"table.history .explanation.{explanation}")).to_have_count(count)
+    expect(page.locator("figure.timeline svg[role=img] rect.bar")).to_have_count(len(history))
+    expect(page.locator("figure.track circle")).to_have_count(
+        sum(1 for e in history if e.get("position")))
     crops = sum(1 for e in history if e.get("cluster_id"))
     expect(page.locator("ol.crops img")).to_have_count(crops)
     images_decode(page)
@@ -305,6 +309,34 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     expect(drawn.locator("text")).to_have_text(name)
     expect(page.locator(f'table.believed tr.hidden a[href="/objects/{hidden}"]')).to_have_count(1)
     shot(page, "8-map")
+
+
+def test_an_object_page_draws_its_track_and_its_timeline(client, store):
+    """A moved object: its positions on the floor plan joined in time order, and one bar per
+    event on the timeline, left to right, as tall as the event's probability."""
+    moved = store.db.events.find_one({"explanation": "move"})
+    history = sorted(store.db.events.find({"object_id": moved["object_id"]}),
+                     key=lambda e: e["time"])
+    body = client.get(f"/objects/{moved['object_id']}").text
+
+    timeline = body[body.index('<figure class="timeline">'):]
+    bars = re.findall(r'<rect class="bar (\w+)" x="([\d.]+)" y="([\d.]+)" width="4" '
+                      r'height="([\d.]+)"', timeline[:timeline.index("</figure>")])
+    assert [kind for kind, *_ in bars] == [e["explanation"] for e in history]
+    xs = [float(x) for _, x, _, _ in bars]
+    assert xs == sorted(xs) and xs[0] < xs[-1]
+    tall = history_page.TIMELINE_HEIGHT - 2 * history_page.TIMELINE_MARGIN
+    for (_, _, _, height), event in zip(bars, history, strict=True):
+        assert float(height) == pytest.approx(tall * event["probability"], abs=0.1)
+
+    track = body[body.index('<figure class="map track">'):]
+    track = track[:track.index("</figure>")]
+    dots = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)" r="[47]"/>', track)
+    assert len(dots) == sum(1 for e in history if e.get("position"))
+    assert len(set(dots)) > 1, "a moved object was seen in more than one place"
+    path = re.search(r'<polyline class="path" points="([^"]*)"', track).group(1)
+    assert path.split() == [f"{x},{y}" for x, y in dots]
+    assert 'class="position move' in track
 
 
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):

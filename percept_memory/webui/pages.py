@@ -1,7 +1,7 @@
 """The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
-its image, cluster boxes, log, relations and annotations, a cluster, and an object's history;
-`mount_pages` adds them and the pages of the other modules (scene log, search, map,
-annotators, enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
+its image, cluster boxes, log, relations and annotations, and a cluster; `mount_pages` adds
+them and the pages of the other modules (scene log, object history, search, map, annotators,
+enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
-from pymongo import DESCENDING
 
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import EVENTS, OBJECTS
@@ -20,11 +19,10 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image, ImageROI, Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import annotators, belief_map, enrichment, live, render, scene_log, search
+from . import annotators, belief_map, enrichment, history, live, render, scene_log, search
 from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
-EVENTS_SHOWN = 500
 THUMB_SIDE = 160
 
 
@@ -32,9 +30,10 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     """Add the pages, their images, style sheet and scripts to the app."""
     app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
     engine = QueryEngine(store, settings)
-    for router in (scene_log.routes(store), page_routes(store), search.routes(store, engine),
-                   belief_map.routes(store, engine), annotators.routes(store, engine),
-                   enrichment.routes(store), live.routes(store)):
+    for router in (scene_log.routes(store), page_routes(store), history.routes(store),
+                   search.routes(store, engine), belief_map.routes(store, engine),
+                   annotators.routes(store, engine), enrichment.routes(store),
+                   live.routes(store)):
         app.include_router(router)
 
     @app.exception_handler(PageError)
@@ -81,22 +80,6 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return page(request, "cluster.html", {
             "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
             "object": believed, "events": explained,
-        })
-
-    @router.get("/objects/{object_id}")
-    async def object_page(request: Request, object_id: str) -> HTMLResponse:
-        key = parse_id(object_id, "object")
-
-        def load() -> tuple[dict | None, list[dict]]:
-            believed = objects.find_one({"_id": key})
-            history = events.find({"object_id": key}).sort("time", DESCENDING)
-            return believed, list(history.limit(EVENTS_SHOWN))
-
-        believed, history = await run_in_threadpool(load)
-        if believed is None:
-            raise PageError(404, f"no object {key}")
-        return page(request, "object.html", {
-            "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
         })
 
     @router.get("/img/scenes/{scene_id}/images/{name}")

@@ -339,6 +339,19 @@ def test_an_object_page_draws_its_track_and_its_timeline(client, store):
     assert 'class="position move' in track
 
 
+def test_search_form_asks_for_the_k_nearest(page, url, store):
+    page.goto(url + "/search")
+    page.get_by_label("Nearest to (m)").fill("2.4, 0.1, 1.25")
+    page.get_by_label("How many nearest").fill("5")
+    page.get_by_role("button", name="Search").click()
+    expect(page).to_have_url(re.compile(r"near=2\.4%2C\+0\.1%2C\+1\.25&k=5"))
+    expected = QueryEngine(store).clusters(near=(2.4, 0.1, 1.25), k=5).items
+    hits = page.locator("ul.grid li.hit")
+    expect(hits).to_have_count(5)
+    assert [hits.nth(i).get_attribute("data-cluster") for i in range(5)] == \
+        [str(h.id) for h in expected]
+
+
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
     page.goto(f"{url}/scenes/{sample.id}")
     image = page.get_by_role("img", name=re.compile("color image of the scene"))
@@ -587,6 +600,16 @@ def test_search_finds_what_the_query_engine_finds(client, store, hostile):
         [str(hit.id) for hit in expected.items]
 
 
+def test_search_finds_the_k_nearest(client, store):
+    near = "1.9,0.2,1.3"
+    expected = QueryEngine(store).clusters(near=near, k=7).items
+    body = client.get("/search", params={"near": near, "k": "7", "view": "list"}).text
+    assert re.findall(r'data-cluster="([0-9a-f]{24})"', body) == [str(h.id) for h in expected]
+    distances = [float(d) for d in re.findall(r'<td class="num">([\d.]+)</td>\s*<td>', body)]
+    assert distances == sorted(distances) and len(distances) == 7
+    assert 'name="near" value="1.9,0.2,1.3"' in body and 'name="k" min="1"' in body
+
+
 def test_search_pages_by_cursor(client, store):
     seen, path = [], "/search?view=list&region=shelf&region=table&region=counter_top_sink"
     expected = [hit.id for hit in QueryEngine(store).clusters(
@@ -653,6 +676,8 @@ def test_live_events_resume_from_a_bad_token_as_from_now(store):
     "/map?at=99999999999999999999", "/map?t=2024-03-04&at=1709510400",
     "/annotators?scenes=0", "/annotators?scenes=many", "/annotators?scenes=999999",
     "/annotators?scenes=²", "/map?at=²",
+    "/search?near=1,2", "/search?near=1,2,3&k=0", "/search?near=1,2,3&k=many",
+    "/search?near=1,2,3&sort=newest", "/search?near=1,2,3&cursor=abc", "/search?k=5&sort=distance",
 ])
 def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, path):
     response = client.get(path)

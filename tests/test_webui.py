@@ -397,6 +397,63 @@ def test_annotators_and_enrichment_in_the_browser(page, url):
     shot(page, "11-enrichment")
 
 
+TABBABLE = """() => Array.from(document.querySelectorAll(
+    'a[href], button, input:not([type=hidden]), select, textarea, summary, [tabindex]'))
+  .filter(e => e.tabIndex >= 0 && !e.disabled && e.getClientRects().length > 0)
+  .map((e, i) => { e.dataset.audit = i; return i; })"""
+UNLABELLED = """() => Array.from(document.querySelectorAll(
+    'input:not([type=hidden]), select, textarea, button'))
+  .filter(e => !(e.labels && Array.from(e.labels).some(l => l.textContent.trim()))
+               && !(e.getAttribute('aria-label') || '').trim()
+               && !(e.tagName === 'BUTTON' && e.textContent.trim()))
+  .map(e => e.outerHTML.slice(0, 120))"""
+NO_ALT = """() => [
+  ...Array.from(document.images).filter(i => !(i.getAttribute('alt') || '').trim()),
+  ...Array.from(document.querySelectorAll('svg[role=img], svg[role=group]'))
+     .filter(s => !(s.getAttribute('aria-label') || '').trim())]
+  .map(e => e.outerHTML.slice(0, 120))"""
+FOCUSED = """() => { const e = document.activeElement;
+  if (!e || e === document.body) return null;
+  const shown = e instanceof SVGElement || getComputedStyle(e).outlineStyle !== 'none';
+  return [e.dataset.audit === undefined ? e.outerHTML.slice(0, 120) : +e.dataset.audit, shown]; }"""
+
+
+def audited_pages(store, week, sample, hostile) -> list[str]:
+    """One of each kind of page, with content: every page of the site's navigation bar and
+    the pages they lead to, an error page and a refused search among them."""
+    scene = sorted(week.scenes, key=lambda s: s.timestamp)[-1]
+    cluster = store.get_cluster(scene.clusters[0].id)
+    return ["/", "/?region=shelf&type=pm.annotation.Text", f"/scenes/{scene.id}",
+            f"/scenes/{sample.id}", f"/scenes/{hostile.id}", f"/clusters/{cluster.id}",
+            f"/objects/{cluster.object_id}", "/search?text=cereal", "/search?text=cereal&view=list",
+            "/search?near=2.4,0.1,1.25&k=5", "/search?sphere=1,2", "/map", "/annotators",
+            "/enrichment", "/live", "/scenes/nonsense"]
+
+
+def test_every_page_is_keyboard_navigable_with_alt_text_and_labels(page, url, store, week,
+                                                                   sample, hostile):
+    """On each page: every image has alt text (and every SVG drawing a label), every form
+    control a label, and Tab visits every link and control once, in document order, each
+    with a visible focus outline, starting with the skip link."""
+    for path in audited_pages(store, week, sample, hostile):
+        page.goto(url + path)
+        page.wait_for_load_state("load")
+        assert page.evaluate(NO_ALT) == [], path
+        assert page.evaluate(UNLABELLED) == [], path
+        tabbable = page.evaluate(TABBABLE)
+        visited: list = []
+        for _ in range(4 * len(tabbable) + 40):  # a date input takes a Tab per part
+            page.keyboard.press("Tab")
+            focused = page.evaluate(FOCUSED)
+            if focused is None or (visited and focused[0] == tabbable[0]):
+                break  # left the page, or wrapped around
+            assert focused[1], (path, "no visible focus", focused[0])
+            if not visited or visited[-1] != focused[0]:
+                visited.append(focused[0])
+        assert visited == tabbable, path
+        assert page.evaluate("document.querySelector('[data-audit=\"0\"]').className") == "skip"
+
+
 def test_keyboard_reaches_the_content(page, url):
     page.goto(url + "/")
     page.keyboard.press("Tab")

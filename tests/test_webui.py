@@ -341,7 +341,7 @@ def test_an_object_page_draws_its_track_and_its_timeline(client, store):
 
 def test_search_form_asks_for_the_k_nearest(page, url, store):
     page.goto(url + "/search")
-    page.get_by_label("Nearest to (m)").fill("2.4, 0.1, 1.25")
+    page.get_by_label("Nearest to a point (m)").fill("2.4, 0.1, 1.25")
     page.get_by_label("How many nearest").fill("5")
     page.get_by_role("button", name="Search").click()
     expect(page).to_have_url(re.compile(r"near=2\.4%2C\+0\.1%2C\+1\.25&k=5"))

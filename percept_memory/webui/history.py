@@ -23,6 +23,7 @@ from .html import PageError, page, parse_id
 
 EVENTS_SHOWN = 500
 TIMELINE_WIDTH, TIMELINE_HEIGHT, TIMELINE_MARGIN = 960, 80, 8
+TRACK_WIDTH, TRACK_HEIGHT = 480, 400
 
 
 @dataclass
@@ -43,6 +44,7 @@ class Timeline:
     last: int
     width: int = TIMELINE_WIDTH
     height: int = TIMELINE_HEIGHT
+    baseline: int = TIMELINE_HEIGHT - TIMELINE_MARGIN  # where bars stand
 
 
 def routes(store: MemoryStore) -> APIRouter:
@@ -60,7 +62,8 @@ def routes(store: MemoryStore) -> APIRouter:
             history = list(events.find({"object_id": key}).sort("time", DESCENDING)
                            .limit(EVENTS_SHOWN))
             placed = [e for e in reversed(history) if e.get("position")]
-            view, regions = floor_plan(store, [e["position"] for e in placed])
+            view, regions = floor_plan(store, [e["position"] for e in placed], TRACK_WIDTH,
+                                       TRACK_HEIGHT)
             return believed, history, view, regions, track(view, placed)
 
         believed, history, view, regions, marks = await run_in_threadpool(load)

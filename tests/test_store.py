@@ -192,6 +192,12 @@ def test_appending_an_annotation_is_idempotent_and_updates_search(store, kitchen
     assert [a.id for a in stored.annotations].count(annotation_id) == 1
     assert stored.annotations[-1] == lookup
     assert "pringles paprika" in store.clusters.find_one({"_id": cluster_id})["search"]["labels"]
+    store.add_annotation(cluster_id, Product(source="$summary.types", name="$labels"))  # data
+    summary = store.scenes.find_one({"_id": scene.id})["summary"]  # grown in place, sorted
+    assert {"WebAnnotator", "$summary.types"} <= set(summary["annotators"])
+    assert {"pringles paprika", "$labels"} <= set(summary["labels"])
+    assert summary == docs.scene_documents([store.get_scene(scene.id)],
+                                           store.gridfs_threshold).scenes[0]["summary"]
 
 
 def test_appending_to_a_missing_cluster_says_so(store):

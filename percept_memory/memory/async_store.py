@@ -160,7 +160,11 @@ class AsyncMemoryStore(StoreBase):
             await self.clusters.replace_one(
                 {"_id": cluster_id}, written.clusters[0], session=session
             )
-            await self._summarise(doc["scene_id"], session)
+            summary = docs.summary_change(doc, written.clusters[0])
+            if summary == docs.RECOUNT:
+                await self._summarise(doc["scene_id"], session)
+            elif summary:
+                await self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
             return written
 
         await self._catalogue(await self._transaction(work))

@@ -258,7 +258,11 @@ class MemoryStore(StoreBase):
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
-            self._summarise(doc["scene_id"], session)
+            summary = docs.summary_change(doc, written.clusters[0])
+            if summary == docs.RECOUNT:
+                self._summarise(doc["scene_id"], session)
+            elif summary:
+                self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
             return written
 
         self._catalogue(self._transaction(work))

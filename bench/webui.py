@@ -106,6 +106,8 @@ def main() -> None:
             "scene_page_20_clusters": timed(client, f"/scenes/{big.id}", args.repeat),
             "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}", args.repeat),
             "scene_log_page": timed(client, "/", args.repeat),
+            "scene_log_filtered": timed(client, "/?" + urlencode(
+                {"annotator": "OCRAnnotator", "type": "pm.annotation.Barcode"}), args.repeat),
             "crop_png": timed(client, f"/img/clusters/{big.clusters[0].id}/crop", args.repeat),
             "scene_thumbnail_png": timed(client, f"/img/scenes/{big.id}/thumb", args.repeat),
         }

@@ -14,6 +14,7 @@ from pymongo import AsyncMongoClient
 
 from percept_memory.converters import Unknown, decode, encode
 from percept_memory.ingest import synthetic
+from percept_memory.memory import documents as docs
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.errors import DuplicateId, NotFound, TooLarge
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
@@ -191,6 +192,12 @@ def test_appending_an_annotation_is_idempotent_and_updates_search(store, kitchen
     assert [a.id for a in stored.annotations].count(annotation_id) == 1
     assert stored.annotations[-1] == lookup
     assert "pringles paprika" in store.clusters.find_one({"_id": cluster_id})["search"]["labels"]
+    store.add_annotation(cluster_id, Product(source="$summary.types", name="$labels"))  # data
+    summary = store.scenes.find_one({"_id": scene.id})["summary"]  # grown in place, sorted
+    assert {"WebAnnotator", "$summary.types"} <= set(summary["annotators"])
+    assert {"pringles paprika", "$labels"} <= set(summary["labels"])
+    assert summary == docs.scene_documents([store.get_scene(scene.id)],
+                                           store.gridfs_threshold).scenes[0]["summary"]
 
 
 def test_appending_to_a_missing_cluster_says_so(store):
@@ -221,6 +228,10 @@ def test_updating_a_cluster(store, kitchen_rgb):
     cluster.annotations = cluster.annotations[:3]
     store.update_cluster(cluster)
     assert store.get_cluster(cluster.id) == cluster
+    summary = store.scenes.find_one({"_id": scene.id})["summary"]  # kept exact: types dropped
+    assert summary["types"] == sorted({a.type_name for a in cluster.annotations})
+    assert summary == docs.scene_documents([store.get_scene(scene.id)],
+                                           store.gridfs_threshold).scenes[0]["summary"]
 
 
 def test_robosherlock_annotations_we_do_not_know_survive_storage(store):
@@ -311,11 +322,13 @@ def test_async_store_round_trip_and_append(mongo_uri, db_name, kitchen_rgb):
         assert (again.scene_id, again.cluster_ids, again.created) == (
             ids.scene_id, ids.cluster_ids, False)
         back = await memory.get_scene(ids.scene_id)
-        await memory.add_annotation(ids.cluster_ids[0], Text(text="Hohes C"))
-        return back, await memory.get_cluster(ids.cluster_ids[0]), await memory.counts()
+        await memory.add_annotation(ids.cluster_ids[0], Text(text="Hohes C", source="LateOCR"))
+        summary = (await memory.scenes.find_one({"_id": ids.scene_id}))["summary"]
+        return back, await memory.get_cluster(ids.cluster_ids[0]), await memory.counts(), summary
 
-    back, cluster, counts = run_async(mongo_uri, db_name, work)
+    back, cluster, counts, summary = run_async(mongo_uri, db_name, work)
     assert back == scene
+    assert "LateOCR" in summary["annotators"]  # the scene log finds it by its new annotator
     assert cluster.annotations[-1].text == "Hohes C"
     assert counts["collections"]["scenes"] >= 1
 

@@ -16,6 +16,7 @@ import time
 from collections import Counter
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from urllib.parse import urlencode
 
 import numpy as np
 import pytest
@@ -33,16 +34,21 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import (
     Classification,
     Cluster,
+    GroundTruth,
     ImageROI,
     LogLine,
     Scene,
     Text,
+    Unknown,
     WebLookup,
 )
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
+from percept_memory.webui import history as history_page
 from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
+from percept_memory.webui.html import nanoseconds
+from percept_memory.webui.scene_log import CHOICES
 
 from .conftest import ROBOSHERLOCK
 
@@ -213,6 +219,9 @@ def test_scene_log_to_scene_to_cluster_to_object_and_back(page, url, store, week
     kinds = Counter(e["explanation"] for e in history)
     for explanation, count in kinds.items():
         expect(page.locator(f"table.history .explanation.{explanation}")).to_have_count(count)
+    expect(page.locator("figure.timeline svg[role=img] rect.bar")).to_have_count(len(history))
+    expect(page.locator("figure.track circle")).to_have_count(
+        sum(1 for e in history if e.get("position")))
     crops = sum(1 for e in history if e.get("cluster_id"))
     expect(page.locator("ol.crops img")).to_have_count(crops)
     images_decode(page)
@@ -302,6 +311,47 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     shot(page, "8-map")
 
 
+def test_an_object_page_draws_its_track_and_its_timeline(client, store):
+    """A moved object: its positions on the floor plan joined in time order, and one bar per
+    event on the timeline, left to right, as tall as the event's probability."""
+    moved = store.db.events.find_one({"explanation": "move"})
+    history = sorted(store.db.events.find({"object_id": moved["object_id"]}),
+                     key=lambda e: e["time"])
+    body = client.get(f"/objects/{moved['object_id']}").text
+
+    timeline = body[body.index('<figure class="timeline">'):]
+    bars = re.findall(r'<rect class="bar (\w+)" x="([\d.]+)" y="([\d.]+)" width="4" '
+                      r'height="([\d.]+)"', timeline[:timeline.index("</figure>")])
+    assert [kind for kind, *_ in bars] == [e["explanation"] for e in history]
+    xs = [float(x) for _, x, _, _ in bars]
+    assert xs == sorted(xs) and xs[0] < xs[-1]
+    tall = history_page.TIMELINE_HEIGHT - 2 * history_page.TIMELINE_MARGIN
+    for (_, _, _, height), event in zip(bars, history, strict=True):
+        assert float(height) == pytest.approx(tall * event["probability"], abs=0.1)
+
+    track = body[body.index('<figure class="map track">'):]
+    track = track[:track.index("</figure>")]
+    dots = re.findall(r'<circle cx="([\d.]+)" cy="([\d.]+)" r="[47]"/>', track)
+    assert len(dots) == sum(1 for e in history if e.get("position"))
+    assert len(set(dots)) > 1, "a moved object was seen in more than one place"
+    path = re.search(r'<polyline class="path" points="([^"]*)"', track).group(1)
+    assert path.split() == [f"{x},{y}" for x, y in dots]
+    assert 'class="position move' in track
+
+
+def test_search_form_asks_for_the_k_nearest(page, url, store):
+    page.goto(url + "/search")
+    page.get_by_label("Nearest to a point (m)").fill("2.4, 0.1, 1.25")
+    page.get_by_label("How many nearest").fill("5")
+    page.get_by_role("button", name="Search").click()
+    expect(page).to_have_url(re.compile(r"near=2\.4%2C\+0\.1%2C\+1\.25&k=5"))
+    expected = QueryEngine(store).clusters(near=(2.4, 0.1, 1.25), k=5).items
+    hits = page.locator("ul.grid li.hit")
+    expect(hits).to_have_count(5)
+    assert [hits.nth(i).get_attribute("data-cluster") for i in range(5)] == \
+        [str(h.id) for h in expected]
+
+
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
     page.goto(f"{url}/scenes/{sample.id}")
     image = page.get_by_role("img", name=re.compile("color image of the scene"))
@@ -345,6 +395,63 @@ def test_annotators_and_enrichment_in_the_browser(page, url):
     page.get_by_role("link", name="Enrichment", exact=True).click()
     expect(page.locator(".hit-rate")).to_contain_text("66.7 %")
     shot(page, "11-enrichment")
+
+
+TABBABLE = """() => Array.from(document.querySelectorAll(
+    'a[href], button, input:not([type=hidden]), select, textarea, summary, [tabindex]'))
+  .filter(e => e.tabIndex >= 0 && !e.disabled && e.getClientRects().length > 0)
+  .map((e, i) => { e.dataset.audit = i; return i; })"""
+UNLABELLED = """() => Array.from(document.querySelectorAll(
+    'input:not([type=hidden]), select, textarea, button'))
+  .filter(e => !(e.labels && Array.from(e.labels).some(l => l.textContent.trim()))
+               && !(e.getAttribute('aria-label') || '').trim()
+               && !(e.tagName === 'BUTTON' && e.textContent.trim()))
+  .map(e => e.outerHTML.slice(0, 120))"""
+NO_ALT = """() => [
+  ...Array.from(document.images).filter(i => !(i.getAttribute('alt') || '').trim()),
+  ...Array.from(document.querySelectorAll('svg[role=img], svg[role=group]'))
+     .filter(s => !(s.getAttribute('aria-label') || '').trim())]
+  .map(e => e.outerHTML.slice(0, 120))"""
+FOCUSED = """() => { const e = document.activeElement;
+  if (!e || e === document.body) return null;
+  const shown = e instanceof SVGElement || getComputedStyle(e).outlineStyle !== 'none';
+  return [e.dataset.audit === undefined ? e.outerHTML.slice(0, 120) : +e.dataset.audit, shown]; }"""
+
+
+def audited_pages(store, week, sample, hostile) -> list[str]:
+    """One of each kind of page, with content: every page of the site's navigation bar and
+    the pages they lead to, an error page and a refused search among them."""
+    scene = sorted(week.scenes, key=lambda s: s.timestamp)[-1]
+    cluster = store.get_cluster(scene.clusters[0].id)
+    return ["/", "/?region=shelf&type=pm.annotation.Text", f"/scenes/{scene.id}",
+            f"/scenes/{sample.id}", f"/scenes/{hostile.id}", f"/clusters/{cluster.id}",
+            f"/objects/{cluster.object_id}", "/search?text=cereal", "/search?text=cereal&view=list",
+            "/search?near=2.4,0.1,1.25&k=5", "/search?sphere=1,2", "/map", "/annotators",
+            "/enrichment", "/live", "/scenes/nonsense"]
+
+
+def test_every_page_is_keyboard_navigable_with_alt_text_and_labels(page, url, store, week,
+                                                                   sample, hostile):
+    """On each page: every image has alt text (and every SVG drawing a label), every form
+    control a label, and Tab visits every link and control once, in document order, each
+    with a visible focus outline, starting with the skip link."""
+    for path in audited_pages(store, week, sample, hostile):
+        page.goto(url + path)
+        page.wait_for_load_state("load")
+        assert page.evaluate(NO_ALT) == [], path
+        assert page.evaluate(UNLABELLED) == [], path
+        tabbable = page.evaluate(TABBABLE)
+        visited: list = []
+        for _ in range(4 * len(tabbable) + 40):  # a date input takes a Tab per part
+            page.keyboard.press("Tab")
+            focused = page.evaluate(FOCUSED)
+            if focused is None or (visited and focused[0] == tabbable[0]):
+                break  # left the page, or wrapped around
+            assert focused[1], (path, "no visible focus", focused[0])
+            if not visited or visited[-1] != focused[0]:
+                visited.append(focused[0])
+        assert visited == tabbable, path
+        assert page.evaluate("document.querySelector('[data-audit=\"0\"]').className") == "skip"
 
 
 def test_keyboard_reaches_the_content(page, url):
@@ -393,6 +500,8 @@ def test_every_page_sends_a_content_security_policy(client, week, hostile):
     ("/img/scenes/nonsense/thumb", 404), (f"/img/clusters/{ObjectId()}/crop", 404),
     ("/?since=yesterday", 422), ("/?until=2024-13-01", 422), ("/?before=123", 422),
     ("/?before=99999999999999999999-0123456789abcdef01234567", 422), ("/?before=-", 422),
+    ("/?type=nonsense", 422), ("/?type=pm.scene.Scene", 422), ("/?type=pm.annotation.LogLin", 422),
+    ("/?region=shelf&since=soon", 422),
 ])
 def test_bad_urls_get_a_page_naming_the_problem(client, path, status):
     response = client.get(path)
@@ -413,15 +522,22 @@ def older_link(body: str) -> str | None:
     return html.unescape(found.group(1)) if found else None
 
 
+def walk_scene_log(client, path: str) -> tuple[list[ObjectId], int]:
+    """Every scene the scene log shows from `path` on, following "older scenes"; and how
+    many pages that took."""
+    seen, pages = [], 0
+    while path:
+        response = client.get(path)
+        assert response.status_code == 200, response.text
+        seen += [ObjectId(s) for s in re.findall(r'data-scene="([0-9a-f]{24})"', response.text)]
+        path, pages = older_link(response.text), pages + 1
+    return seen, pages
+
+
 def test_pages_walk_every_scene_once_newest_first(client, store):
     expected = [d["_id"] for d in store.scenes.find({}, {"_id": 1}).sort(
         [("timestamp", -1), ("_id", -1)])]
-    seen, path = [], "/"
-    while path:
-        body = client.get(path).text
-        seen += [ObjectId(s) for s in re.findall(r'data-scene="([0-9a-f]{24})"', body)]
-        path = older_link(body)
-    assert seen == expected
+    assert walk_scene_log(client, "/")[0] == expected
 
 
 def test_filters_by_robot_and_time(client, week):
@@ -433,6 +549,84 @@ def test_filters_by_robot_and_time(client, week):
     body = client.get("/", params={"since": since, "until": until}).text
     shown = re.findall(r'data-scene="([0-9a-f]{24})"', body)
     assert shown == [str(s.id) for s in reversed(middle)]
+
+
+def facets_of(scene: Scene) -> dict[str, set[str]]:
+    """What a scene offers each scene log filter, worked out from the scene itself."""
+    annotations = [*scene.annotations, *(a for c in scene.clusters for a in c.annotations)]
+    sources = [a.fields.get("source") if isinstance(a, Unknown) else a.source
+               for a in [*annotations, *scene.log]]
+    return {"robot": {scene.robot}, "region": {c.region for c in scene.clusters} - {None},
+            "annotator": set(sources) - {None, ""},
+            "type": {render.type_name(a) for a in annotations}}
+
+
+def brute_force_scene_log(store, **wanted: str) -> list[ObjectId]:
+    """The scenes the log should show for these filters (since/until in nanoseconds), newest
+    first, by reading every stored scene."""
+    scenes = [store.get_scene(d["_id"]) for d in store.scenes.find({}, {"_id": 1})]
+    since, until = wanted.pop("since", 0), wanted.pop("until", 2**63)
+    chosen = [s for s in scenes if since <= s.timestamp <= until
+              and all(value in facets_of(s)[name] for name, value in wanted.items())]
+    return [s.id for s in sorted(chosen, key=lambda s: (s.timestamp, s.id), reverse=True)]
+
+
+def test_each_scene_log_filter_shows_every_match_once_in_order(client, store, week):
+    facets: dict[str, set[str]] = {}
+    for doc in store.scenes.find({}, {"_id": 1}):
+        for name, values in facets_of(store.get_scene(doc["_id"])).items():
+            facets.setdefault(name, set()).update(values)
+    assert {"counter_top_sink", "shelf"} <= facets["region"]
+    assert {"OCRAnnotator", "MalloryNet"} <= facets["annotator"]
+    assert {"pm.annotation.Logo", "rs.annotation.Segment"} <= facets["type"]
+    several_pages = 0
+    for name in ("region", "annotator", "type"):
+        for value in sorted(facets[name]):
+            seen, pages = walk_scene_log(client, "/scenes?" + urlencode({name: value}))
+            assert seen == brute_force_scene_log(store, **{name: value}), (name, value)
+            several_pages += pages > 1
+    assert several_pages >= 3, "some filter should need more than one page"
+    times = sorted(s.timestamp for s in week.scenes)
+    combined = {"robot": week.scenes[0].robot, "region": "counter_top_sink",
+                "annotator": "OCRAnnotator", "type": "pm.annotation.Text"}
+    since, until = kitchen_week_time(times[5]), kitchen_week_time(times[-5])
+    seen, _ = walk_scene_log(client, "/scenes?" + urlencode(
+        {**combined, "since": since, "until": until}))
+    expected = brute_force_scene_log(store, **combined, since=nanoseconds(since, "since"),
+                                     until=nanoseconds(until, "until"))
+    assert seen == expected and expected
+
+
+def test_scene_log_filters_are_index_backed(store):
+    """Newest first without an in-memory sort, unfiltered or by any one filter."""
+    for name, key in [*CHOICES.items(), ("none", None)]:
+        found = store.scenes.find({key: "x"} if key else {})
+        plan = found.sort([("timestamp", -1), ("_id", -1)]).limit(21).explain()
+        plan = plan["queryPlanner"]["winningPlan"]
+        assert "IXSCAN" in str(plan) and "'SORT'" not in str(plan), (name, plan)
+
+
+def test_a_scene_log_filter_follows_annotations_added_later(client, store):
+    """An enrichment worker appends annotations to stored clusters: the scene is then found
+    by the new annotator and the new type."""
+    scene = synthetic.scene(np.random.default_rng(11), HOSTILE_STAMP - 7200 * 10**9,
+                            clusters=2, robot="enriched-bot")
+    store.put_scene(scene)
+    wanted = {"annotator": "LateLabeller", "type": "pm.annotation.GroundTruth"}
+    for name, value in wanted.items():
+        assert scene.id not in walk_scene_log(client, "/scenes?" + urlencode({name: value}))[0]
+    store.add_annotation(scene.clusters[1].id, GroundTruth(class_name="mug",
+                                                           source="LateLabeller"))
+    for name, value in wanted.items():
+        seen, _ = walk_scene_log(client, "/scenes?" + urlencode({name: value}))
+        assert scene.id in seen and seen == brute_force_scene_log(store, **{name: value})
+
+
+def test_a_scene_log_type_may_be_named_by_an_alias(client):
+    canonical = client.get("/scenes", params={"type": "pm.annotation.Classification"}).text
+    alias = client.get("/scenes", params={"type": "rs.annotation.Classification"}).text
+    assert re.findall(r'data-scene="([0-9a-f]{24})"', canonical) == \
+        re.findall(r'data-scene="([0-9a-f]{24})"', alias) != []
 
 
 def kitchen_week_time(stamp: int) -> str:
@@ -461,6 +655,16 @@ def test_search_finds_what_the_query_engine_finds(client, store, hostile):
     body = client.get("/search", params=query).text
     assert re.findall(r'data-cluster="([0-9a-f]{24})"', body) == \
         [str(hit.id) for hit in expected.items]
+
+
+def test_search_finds_the_k_nearest(client, store):
+    near = "1.9,0.2,1.3"
+    expected = QueryEngine(store).clusters(near=near, k=7).items
+    body = client.get("/search", params={"near": near, "k": "7", "view": "list"}).text
+    assert re.findall(r'data-cluster="([0-9a-f]{24})"', body) == [str(h.id) for h in expected]
+    distances = [float(d) for d in re.findall(r'<td class="num">([\d.]+)</td>\s*<td>', body)]
+    assert distances == sorted(distances) and len(distances) == 7
+    assert 'name="near" value="1.9,0.2,1.3"' in body and 'name="k" min="1"' in body
 
 
 def test_search_pages_by_cursor(client, store):
@@ -529,6 +733,8 @@ def test_live_events_resume_from_a_bad_token_as_from_now(store):
     "/map?at=99999999999999999999", "/map?t=2024-03-04&at=1709510400",
     "/annotators?scenes=0", "/annotators?scenes=many", "/annotators?scenes=999999",
     "/annotators?scenes=²", "/map?at=²",
+    "/search?near=1,2", "/search?near=1,2,3&k=0", "/search?near=1,2,3&k=many",
+    "/search?near=1,2,3&sort=newest", "/search?near=1,2,3&cursor=abc", "/search?k=5&sort=distance",
 ])
 def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, path):
     response = client.get(path)
@@ -542,7 +748,8 @@ NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '
          "classification:confidence>nan"]
 PARAMETERS = {
     "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
-    "/annotators": ["scenes", "robot"], "/scenes": ["robot", "since", "until", "before"],
+    "/annotators": ["scenes", "robot"],
+    "/scenes": ["robot", "region", "annotator", "type", "since", "until", "before"],
 }
 
 

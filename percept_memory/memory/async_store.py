@@ -160,9 +160,23 @@ class AsyncMemoryStore(StoreBase):
             await self.clusters.replace_one(
                 {"_id": cluster_id}, written.clusters[0], session=session
             )
+            summary = docs.summary_change(doc, written.clusters[0])
+            if summary == docs.RECOUNT:
+                await self._summarise(doc["scene_id"], session)
+            elif summary:
+                await self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
             return written
 
         await self._catalogue(await self._transaction(work))
+
+    async def _summarise(self, scene_id: ObjectId, session) -> None:
+        """See MemoryStore._summarise."""
+        scene = await self.scenes.find_one({"_id": scene_id}, docs.SUMMARY_PROJECTION,
+                                           session=session)
+        clusters = await self.clusters.find({"scene_id": scene_id}, docs.SUMMARY_PROJECTION,
+                                            session=session).to_list()
+        await self.scenes.update_one({"_id": scene_id}, {"$set": {
+            docs.SUMMARY_KEY: docs.scene_summary(scene, clusters)}}, session=session)
 
     async def put_blob(self, data: bytes) -> str:
         blob_id = content_id(data)

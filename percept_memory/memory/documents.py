@@ -133,14 +133,55 @@ def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
         doc = out.encode(scene.model_copy(update={"clusters": []}), threshold)  # stored apart
         doc["clusters"] = [c.id for c in scene.clusters]
         doc["time"] = datetime_from_timestamp(scene.timestamp)
-        doc[SUMMARY_KEY] = {
-            "clusters": len(clusters),
-            "labels": sorted({label for c in clusters for label in c[SEARCH_KEY]["labels"]}),
-            "regions": sorted({c[SEARCH_KEY]["region"] for c in clusters} - {None}),
-        }
+        doc[SUMMARY_KEY] = scene_summary(doc, clusters)
         out.scenes.append(doc)
         out.clusters.extend(clusters)
     return out
+
+
+SUMMARY_PROJECTION = {"log.source": 1, "annotations.source": 1, "annotations._type": 1,
+                      "search.labels": 1, "search.region": 1, "search.types": 1}
+"""What scene_summary reads of a scene document and of its cluster documents."""
+SUMMARY_SETS = ("labels", "regions", "annotators", "types")
+RECOUNT = "recount"  # summary_change: the scene's summary must be worked out again
+
+
+def scene_summary(scene_doc: Mapping, cluster_docs: Sequence[Mapping]) -> dict:
+    """The small inline summary of a scene: what its list row shows (cluster count, labels,
+    regions) and what the scene log filters by, each an indexed array (schema.py): its
+    regions, its annotators (the sources of its log lines and of all its annotations) and the
+    annotation types on it or on its clusters."""
+    scene_annotations = scene_doc.get("annotations", ())
+    own = {"labels": set(), "regions": set(), "types": {a["_type"] for a in scene_annotations},
+           "annotators": _sources([*scene_annotations, *scene_doc.get("log", ())])}
+    parts = [own, *map(_summary_sets, cluster_docs)]
+    return {"clusters": len(cluster_docs),
+            **{key: sorted(set().union(*(part[key] for part in parts))) for key in SUMMARY_SETS}}
+
+
+def summary_change(before: Mapping, after: Mapping) -> list[dict] | str | None:
+    """How rewriting a cluster document changes its scene's summary: None (not at all), an
+    update pipeline adding the values it gained (the usual case: annotations appended), or
+    RECOUNT when it lost some, which only scene_summary over all the clusters can tell."""
+    old, new = _summary_sets(before), _summary_sets(after)
+    if old == new:
+        return None
+    if any(not old[key] <= new[key] for key in SUMMARY_SETS):
+        return RECOUNT
+    return [{"$set": {f"{SUMMARY_KEY}.{key}": {"$sortArray": {"input": {"$setUnion": [
+        {"$ifNull": [f"${SUMMARY_KEY}.{key}", []]}, {"$literal": sorted(new[key])}]},
+        "sortBy": 1}} for key in SUMMARY_SETS}}]
+
+
+def _summary_sets(cluster_doc: Mapping) -> dict[str, set[str]]:
+    search = cluster_doc[SEARCH_KEY]
+    return {"labels": set(search["labels"]), "regions": {search["region"]} - {None},
+            "annotators": _sources(cluster_doc.get("annotations", ())),
+            "types": set(search["types"])}
+
+
+def _sources(annotations: Iterable[Mapping]) -> set[str]:
+    return {a.get("source") for a in annotations} - {None, ""}
 
 
 def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Documents:

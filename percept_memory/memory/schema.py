@@ -37,7 +37,12 @@ INDEXES: dict[str, list[IndexModel]] = {
     SCENES: [
         IndexModel([("robot", ASCENDING), ("timestamp", ASCENDING)], unique=True,
                    name="robot_time_unique"),
-        IndexModel([("timestamp", DESCENDING)], name="time"),
+        # the scene log (webui/scene_log.py): newest first, (timestamp, _id) as its cursor,
+        # unfiltered or filtered by any one of these fields
+        IndexModel([("timestamp", DESCENDING), ("_id", DESCENDING)], name="newest"),
+        *(IndexModel([(key, ASCENDING), ("timestamp", DESCENDING), ("_id", DESCENDING)],
+                     name=f"{key.rpartition('.')[2]}_newest")
+          for key in ("robot", "summary.regions", "summary.annotators", "summary.types")),
     ],
     # Each query path of queries/ has an index ending in (time, _id): results come newest
     # first, and a cursor resumes after the last (time, _id) seen, without sorting in memory.

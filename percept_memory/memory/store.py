@@ -258,9 +258,22 @@ class MemoryStore(StoreBase):
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
+            summary = docs.summary_change(doc, written.clusters[0])
+            if summary == docs.RECOUNT:
+                self._summarise(doc["scene_id"], session)
+            elif summary:
+                self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
             return written
 
         self._catalogue(self._transaction(work))
+
+    def _summarise(self, scene_id: ObjectId, session) -> None:
+        """Bring the scene's inline summary up to date with its (rewritten) clusters."""
+        scene = self.scenes.find_one({"_id": scene_id}, docs.SUMMARY_PROJECTION, session=session)
+        clusters = list(self.clusters.find({"scene_id": scene_id}, docs.SUMMARY_PROJECTION,
+                                           session=session))
+        self.scenes.update_one({"_id": scene_id}, {"$set": {
+            docs.SUMMARY_KEY: docs.scene_summary(scene, clusters)}}, session=session)
 
     # --- blobs --------------------------------------------------------------------------
 

@@ -39,7 +39,7 @@ time_of_text = TypeAdapter(Time)
 
 @dataclass
 class Projection:
-    """Map metres to SVG pixels, north up, the whole extent in WIDTH x at most MAX_HEIGHT."""
+    """Map metres to SVG pixels, north up, the whole extent in at most WIDTH x MAX_HEIGHT."""
 
     x0: float
     y1: float
@@ -48,11 +48,13 @@ class Projection:
     height: int
 
     @classmethod
-    def around(cls, xs: list[float], ys: list[float]) -> Projection:
+    def around(cls, xs: list[float], ys: list[float], width: int = WIDTH,
+               max_height: int = MAX_HEIGHT) -> Projection:
         x0, x1 = min(xs, default=0) - PAD_M, max(xs, default=1) + PAD_M
         y0, y1 = min(ys, default=0) - PAD_M, max(ys, default=1) + PAD_M
-        scale = min((WIDTH - 2 * MARGIN) / (x1 - x0), (MAX_HEIGHT - 2 * MARGIN) / (y1 - y0))
-        return cls(x0, y1, scale, WIDTH, round((y1 - y0) * scale + 2 * MARGIN))
+        scale = min((width - 2 * MARGIN) / (x1 - x0), (max_height - 2 * MARGIN) / (y1 - y0))
+        return cls(x0, y1, scale, round((x1 - x0) * scale + 2 * MARGIN),
+                   round((y1 - y0) * scale + 2 * MARGIN))
 
     def point(self, x: float, y: float) -> tuple[float, float]:
         return (round(MARGIN + (x - self.x0) * self.scale, 1),
@@ -87,21 +89,14 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
 
         def load():
             believed = engine.what_is_at(box=EVERYWHERE, t=moment).objects
-            return believed, _region_boxes(store), _neighbours(store, moment)
+            placed = [o for o in believed if o.position is not None]
+            return believed, placed, floor_plan(store, [o.position for o in placed]), \
+                _neighbours(store, moment)
 
         try:
-            believed, boxes, (earlier, later) = await run_in_threadpool(load)
+            believed, placed, (view, regions), (earlier, later) = await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
-        placed = [o for o in believed if o.position is not None]
-        xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
-        ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
-        view = Projection.around(xs + [o.position[0] for o in placed],
-                                 ys + [o.position[1] for o in placed])
-        regions = []
-        for name, (low, high) in sorted(boxes.items()):
-            (left, top), (right, bottom) = view.point(low[0], high[1]), view.point(high[0], low[1])
-            regions.append(DrawnRegion(name, left, top, right - left, bottom - top))
         objects = [DrawnObject(o, *view.point(o.position[0], o.position[1])) for o in placed]
         return page(request, "map.html", {
             "span": span, "t": moment, "view": view, "regions": regions, "objects": objects,
@@ -110,6 +105,23 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         })
 
     return router
+
+
+def floor_plan(store: MemoryStore, positions: list, width: int = WIDTH,
+               max_height: int = MAX_HEIGHT) -> tuple[Projection, list[DrawnRegion]]:
+    """The regions drawn top-down, in a projection that holds them and these positions (map
+    frame, metres: x, y and any more coordinates) in at most width x max_height pixels. The
+    map page and the object page's track draw on it (macros.html: floor_plan)."""
+    boxes = _region_boxes(store)
+    xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
+    ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
+    view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
+                             width, max_height)
+    regions = []
+    for name, (low, high) in sorted(boxes.items()):
+        (left, top), (right, bottom) = view.point(low[0], high[1]), view.point(high[0], low[1])
+        regions.append(DrawnRegion(name, left, top, right - left, bottom - top))
+    return view, regions
 
 
 def _moment(t: str, at: str) -> int | None:

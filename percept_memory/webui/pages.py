@@ -1,7 +1,7 @@
-"""The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): the scene log,
-a scene with its image, cluster boxes, log, relations and annotations, a cluster, and an
-object's history; `mount_pages` adds them and the pages of the other modules (search, map,
-annotators, enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
+"""The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
+its image, cluster boxes, log, relations and annotations, and a cluster; `mount_pages` adds
+them and the pages of the other modules (scene log, object history, search, map, annotators,
+enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
-from pymongo import DESCENDING
 
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import EVENTS, OBJECTS
@@ -20,12 +19,10 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image, ImageROI, Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import annotators, belief_map, enrichment, live, render, search
-from .html import HERE, LIST_FIELDS, PageError, nanoseconds, page, parse_id
+from . import annotators, belief_map, enrichment, history, live, render, scene_log, search
+from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
-SCENES_PER_PAGE = 20
-EVENTS_SHOWN = 500
 THUMB_SIDE = 160
 
 
@@ -33,9 +30,10 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     """Add the pages, their images, style sheet and scripts to the app."""
     app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
     engine = QueryEngine(store, settings)
-    for router in (page_routes(store), search.routes(store, engine),
-                   belief_map.routes(store, engine), annotators.routes(store, engine),
-                   enrichment.routes(store), live.routes(store)):
+    for router in (scene_log.routes(store), page_routes(store), history.routes(store),
+                   search.routes(store, engine), belief_map.routes(store, engine),
+                   annotators.routes(store, engine), enrichment.routes(store),
+                   live.routes(store)):
         app.include_router(router)
 
     @app.exception_handler(PageError)
@@ -50,41 +48,6 @@ def page_routes(store: MemoryStore) -> APIRouter:
     async def stored(get, text: str, kind: str):
         """The stored scene or cluster an URL names, or a 404 page."""
         return await run_in_threadpool(_found, get, parse_id(text, kind))
-
-    @router.get("/")
-    @router.get("/scenes")
-    async def scene_log(request: Request, robot: str = "", since: str = "", until: str = "",
-                        before: str = "") -> HTMLResponse:
-        """Scenes newest first, SCENES_PER_PAGE at a time; `before` is the cursor of the last
-        scene shown (its timestamp and id), so paging stays right while scenes arrive."""
-        query: dict = {}
-        if robot:
-            query["robot"] = robot
-        span = {op: nanoseconds(text, name) for op, text, name in
-                (("$gte", since, "since"), ("$lte", until, "until")) if text}
-        if span:
-            query["timestamp"] = span
-        if before:
-            stamp, scene_id = _cursor(before)
-            query = {"$and": [query, {"$or": [
-                {"timestamp": {"$lt": stamp}}, {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
-
-        def load() -> tuple[list[dict], list[str]]:
-            found = store.scenes.find(query, LIST_FIELDS).sort(
-                [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
-            return list(found), sorted(store.scenes.distinct("robot"))
-
-        scenes, robots = await run_in_threadpool(load)
-        older = None
-        if len(scenes) > SCENES_PER_PAGE:
-            scenes = scenes[:SCENES_PER_PAGE]
-            last = scenes[-1]
-            older = dict(robot=robot, since=since, until=until,
-                         before=f"{last['timestamp']}-{last['_id']}")
-        return page(request, "scenes.html", {
-            "scenes": scenes, "robots": robots, "older": older,
-            "filters": {"robot": robot, "since": since, "until": until},
-        })
 
     @router.get("/scenes/{scene_id}")
     async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
@@ -117,22 +80,6 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return page(request, "cluster.html", {
             "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
             "object": believed, "events": explained,
-        })
-
-    @router.get("/objects/{object_id}")
-    async def object_page(request: Request, object_id: str) -> HTMLResponse:
-        key = parse_id(object_id, "object")
-
-        def load() -> tuple[dict | None, list[dict]]:
-            believed = objects.find_one({"_id": key})
-            history = events.find({"object_id": key}).sort("time", DESCENDING)
-            return believed, list(history.limit(EVENTS_SHOWN))
-
-        believed, history = await run_in_threadpool(load)
-        if believed is None:
-            raise PageError(404, f"no object {key}")
-        return page(request, "object.html", {
-            "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
         })
 
     @router.get("/img/scenes/{scene_id}/images/{name}")
@@ -185,10 +132,3 @@ def _found(get, key: ObjectId):
     except NotFound as error:
         raise PageError(404, str(error)) from None
 
-
-def _cursor(text: str) -> tuple[int, ObjectId]:
-    stamp, _, scene_id = text.partition("-")
-    digits = stamp.isascii() and stamp.isdigit()
-    if not digits or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
-        raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
-    return int(stamp), ObjectId(scene_id)

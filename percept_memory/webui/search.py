@@ -1,9 +1,10 @@
 """The search page: clusters (observations) by text, regions, robots, a sphere or a box in the
-map frame, a time range and annotation field predicates, in one GET form whose fields are the
-query model's (queries/model.py: ClusterQuery), so the URL holds the query, can be shared, and
-`/search?text=cereal&region=table` asks what `/api/clusters?text=cereal&region=table` does.
-Results show as a grid of crops or as a list, a page at a time by the engine's cursor. A query
-the model refuses comes back as the form with each problem named (422), never a 500.
+map frame or the k nearest to a point, a time range and annotation field predicates, in one
+GET form whose fields are the query model's (queries/model.py: ClusterQuery), so the URL holds
+the query, can be shared, and `/search?text=cereal&region=table` asks what
+`/api/clusters?text=cereal&region=table` does. Results show as a grid of crops or as a list, a
+page at a time by the engine's cursor (the k nearest: one page). A query the model refuses
+comes back as the form with each problem named (422), never a 500.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from percept_memory.converters import registered_types
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Annotation
 from percept_memory.queries.engine import QueryEngine
-from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.model import MAX_K, ClusterQuery
 from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
@@ -100,7 +101,7 @@ def _choices(store: MemoryStore) -> dict:
         for field in cls.model_fields if field not in HINT_SKIPPED)
     return {"regions": sorted(r for r in store.clusters.distinct("search.region") if r),
             "robots": sorted(r for r in store.clusters.distinct("search.robot") if r),
-            "predicates": predicates}
+            "predicates": predicates, "max_k": MAX_K}
 
 
 def _with_crops(store: MemoryStore, hits: list) -> set:

@@ -1,0 +1,99 @@
+"""The scene log: scenes newest first, SCENES_PER_PAGE at a time, filtered by robot, time range,
+region, annotator (a log line's or an annotation's source) and annotation type. Each filter
+reads one field of the scene document that an index pairs with (timestamp, _id)
+(memory/schema.py): `robot`, `timestamp`, and the inline summary's `regions`, `annotators` and
+`types` (memory/documents.py: scene_summary). The cursor `before` is the (timestamp, id) of the
+last scene shown, so paging stays exact, filtered or not, while scenes arrive.
+"""
+
+from __future__ import annotations
+
+from bson import ObjectId
+from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse
+from pymongo import DESCENDING
+
+from percept_memory.converters import class_for, name_of
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import Annotation
+
+from .html import LIST_FIELDS, PageError, nanoseconds, page
+
+SCENES_PER_PAGE = 20
+CHOICES = {"robot": "robot", "region": "summary.regions", "annotator": "summary.annotators",
+           "type": "summary.types"}
+"""The filters that pick one stored value, and the scene field each one matches."""
+FILTERS = (*CHOICES, "since", "until")
+
+
+def routes(store: MemoryStore) -> APIRouter:
+    router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
+
+    @router.get("/")
+    @router.get("/scenes")
+    async def scene_log(request: Request, robot: str = "", region: str = "",
+                        annotator: str = "", type: str = "", since: str = "", until: str = "",
+                        before: str = "") -> HTMLResponse:
+        filters = {"robot": robot, "region": region, "annotator": annotator, "type": type,
+                   "since": since, "until": until}
+
+        def load() -> tuple[list[dict], dict[str, list[str]]]:
+            choices = {name: sorted(v for v in store.scenes.distinct(key) if v is not None)
+                       for name, key in CHOICES.items()}
+            query = scene_filter(filters, choices["type"])
+            if before:
+                stamp, scene_id = _cursor(before)
+                query = {"$and": [query, {"$or": [
+                    {"timestamp": {"$lt": stamp}},
+                    {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
+            found = store.scenes.find(query, LIST_FIELDS).sort(
+                [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
+            return list(found), choices
+
+        scenes, choices = await run_in_threadpool(load)
+        given = {name: value for name, value in filters.items() if value}
+        older = None
+        if len(scenes) > SCENES_PER_PAGE:
+            scenes = scenes[:SCENES_PER_PAGE]
+            last = scenes[-1]
+            older = {**given, "before": f"{last['timestamp']}-{last['_id']}"}
+        return page(request, "scenes.html", {
+            "scenes": scenes, "choices": choices, "older": older, "filters": filters,
+            "given": given,
+        })
+
+    return router
+
+
+def scene_filter(filters: dict[str, str], stored_types: list[str]) -> dict:
+    """The MongoDB filter of the scene log's URL parameters (values, never operators)."""
+    query: dict = {CHOICES[name]: filters[name] for name in ("robot", "region", "annotator")
+                   if filters[name]}
+    if filters["type"]:
+        query[CHOICES["type"]] = annotation_type(filters["type"], stored_types)
+    span = {op: nanoseconds(filters[name], name)
+            for op, name in (("$gte", "since"), ("$lte", "until")) if filters[name]}
+    if span:
+        query["timestamp"] = span
+    return query
+
+
+def annotation_type(text: str, stored: list[str]) -> str:
+    """The stored name of an annotation type: one stored (also unknown ones) or a registered
+    one, by its name or an alias (rs.annotation.Classification)."""
+    if text in stored:
+        return text
+    cls = class_for(text)
+    if cls is None or not issubclass(cls, Annotation):
+        raise PageError(422, f"type: {text!r} is not an annotation type; stored are "
+                             f"{', '.join(stored) or 'none'}")
+    return name_of(cls)
+
+
+def _cursor(text: str) -> tuple[int, ObjectId]:
+    stamp, _, scene_id = text.partition("-")
+    digits = stamp.isascii() and stamp.isdigit()
+    if not digits or not ObjectId.is_valid(scene_id) or int(stamp) >= 2**63:
+        raise PageError(422, f"before: {text!r} is not a page cursor (<timestamp>-<scene id>)")
+    return int(stamp), ObjectId(scene_id)

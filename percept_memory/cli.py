@@ -162,6 +162,12 @@ def info(settings: Settings, as_json: bool) -> None:
         click.echo("  (no annotations stored yet)")
 
 
+def progress_bar(label: str) -> Progress:
+    """The bar long operations show on stderr (stdout stays for their results)."""
+    return Progress(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+
+
 # --- pmem import: bring percepts in -----------------------------------------------------------
 
 
@@ -170,10 +176,7 @@ def ingest_with_progress(
 ) -> ImportSummary:
     """Feed (label, scene) items through the ingest service with a progress bar on stderr."""
     summary = ImportSummary()
-    with Progress(
-        TextColumn(f"[bold]{source}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-        console=Console(stderr=True), transient=True,
-    ) as progress:
+    with progress_bar(source) as progress:
         task = progress.add_task(source, total=None)
         service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
         for ingested in service.ingest_stream(items, context):
@@ -291,8 +294,7 @@ def demo(settings: Settings, days: int, serving: bool, host: str, port: int, wor
 
 def wait_for_lookups(store: MemoryStore, workers: list) -> dict[str, int]:
     """Jobs per state once none is queued or running, with a progress bar on stderr."""
-    with Progress(TextColumn("[bold]lookups"), BarColumn(), MofNCompleteColumn(),
-                  TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+    with progress_bar("lookups") as bar:
         task = bar.add_task("lookups", total=None)
         while True:
             counts = job_report(store, limit=0)["counts"]
@@ -385,13 +387,26 @@ def reconsolidate(settings: Settings) -> None:
     the identity parameters): the same store always gives the same belief state."""
     with MemoryStore.open(settings) as store:
         total = store.scenes.estimated_document_count()
-        with Progress(TextColumn("[bold]reconsolidate"), BarColumn(), MofNCompleteColumn(),
-                      TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
+        with progress_bar("reconsolidate") as bar:
             task = bar.add_task("scenes", total=total)
             count = Consolidator(store).rebuild(lambda: bar.advance(task))
         objects = store.db["objects"].count_documents({})
         events = store.db["events"].count_documents({})
     click.echo(f"reconsolidated {count} scenes: {objects} objects, {events} events")
+
+
+@main.command()
+@click.pass_obj
+def reindex(settings: Settings) -> None:
+    """Recompute the search keys, scene summaries and vocabulary of everything stored (after
+    an upgrade that changed them; the stored percepts themselves are not touched)."""
+    with MemoryStore.open(settings) as store:
+        total = (store.clusters.estimated_document_count()
+                 + store.scenes.estimated_document_count())
+        with progress_bar("reindex") as bar:
+            task = bar.add_task("clusters and scenes", total=total)
+            count = store.reindex(lambda: bar.advance(task))
+    click.echo(f"reindexed {count} clusters")
 
 
 # --- pmem query: the query API on the command line -------------------------------------------
@@ -455,9 +470,7 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
     query = model_from_options(ExportQuery, given)
     with MemoryStore.open(settings) as store:
         export = Export(store, query, settings)
-        with Progress(TextColumn(f"[bold]export {query.format}"), BarColumn(),
-                      MofNCompleteColumn(), TimeElapsedColumn(), console=Console(stderr=True),
-                      transient=True) as bar:
+        with progress_bar(f"export {query.format}") as bar:
             task = bar.add_task("clusters", total=export.total)
             try:
                 summary = export.save(out, lambda done: bar.advance(task, done))

@@ -362,3 +362,22 @@ def test_a_batch_too_big_for_one_transaction_is_written_in_parts(store):
     assert store.scenes.count_documents({"robot": "big-batch"}) == 150
     again = store.get_scene(scenes[77].id)
     assert np.array_equal(again.images["rgb"].data, scenes[77].images["rgb"].data)
+
+
+def test_reindex_brings_data_of_an_older_version_up_to_date(store):
+    """Derived fields missing or stale (as stored by an older version): reindex recomputes
+    each cluster's search keys and each scene's summary exactly as a fresh store writes them."""
+    rng = np.random.default_rng(11)
+    scene = synthetic.scene(rng, 8_000_000_000_000_000_000, clusters=3)
+    store.put_scene(scene)
+    ids = [c.id for c in scene.clusters]
+    fresh_clusters = {d["_id"]: d["search"] for d in store.clusters.find({"_id": {"$in": ids}})}
+    fresh_scene = store.scenes.find_one({"_id": scene.id})["summary"]
+    stale = {"$unset": {"search.x": "", "search.fields": "", "search.terms": ""}}
+    store.clusters.update_many({"_id": {"$in": ids}}, stale)
+    store.scenes.update_one({"_id": scene.id}, {"$unset": {"summary": ""}})
+
+    assert store.reindex() == store.clusters.count_documents({})
+    assert {d["_id"]: d["search"] for d in store.clusters.find({"_id": {"$in": ids}})} == \
+        fresh_clusters
+    assert store.scenes.find_one({"_id": scene.id})["summary"] == fresh_scene

@@ -267,6 +267,23 @@ class MemoryStore(StoreBase):
 
         self._catalogue(self._transaction(work))
 
+    def reindex(self, progress: Callable[[], None] | None = None) -> int:
+        """Recompute what is derived from the stored data (every cluster's search keys, every
+        scene's summary, the vocabulary) after an upgrade changed how it is derived: data
+        stored by an older version then answers every query. Returns the clusters rewritten."""
+        count = 0
+        for doc in self.clusters.find({}, {"_id": 1}).sort("_id", 1):
+            self._rewrite_cluster(doc["_id"], lambda cluster: cluster)
+            count += 1
+            if progress:
+                progress()
+        for doc in self.scenes.find({}, {"_id": 1}).sort("_id", 1):
+            self._transaction(lambda session, scene_id=doc["_id"]:
+                              self._summarise(scene_id, session))
+            if progress:
+                progress()
+        return count
+
     def _summarise(self, scene_id: ObjectId, session) -> None:
         """Bring the scene's inline summary up to date with its (rewritten) clusters."""
         scene = self.scenes.find_one({"_id": scene_id}, docs.SUMMARY_PROJECTION, session=session)

@@ -36,7 +36,9 @@ from .schema import (
     GRIDFS_CHUNKS,
     GRIDFS_FILES,
     INDEXES,
+    LABELS,
     SCENES,
+    TERMS,
     TYPES,
     catalogue_entry,
 )
@@ -88,8 +90,10 @@ class StoreBase:
                 new[collection] = fresh
         return new
 
-    def _remember_words(self, collection: str, entries: list[dict]) -> None:
-        self._known_words.update((collection, e["_id"]) for e in entries)
+    def _remember_words(self, written: docs.Documents) -> None:
+        """After a commit: the words of this write are in the vocabulary."""
+        self._known_words.update((TERMS, term) for term in written.terms)
+        self._known_words.update((LABELS, label) for label in written.labels)
 
     def _refused(self, error: Exception, prepared: docs.PreparedWrite) -> str:
         """What to do about a scene write the server refused: HALVE a batch too big for one
@@ -258,6 +262,7 @@ class MemoryStore(StoreBase):
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
+            self._write_vocabulary(written, session)
             summary = docs.summary_change(doc, written.clusters[0])
             if summary == docs.RECOUNT:
                 self._summarise(doc["scene_id"], session)
@@ -330,19 +335,24 @@ class MemoryStore(StoreBase):
         self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             self.clusters.insert_many(written.clusters, session=session)
+        self._write_vocabulary(written, session)
+
+    def _write_vocabulary(self, written: docs.Documents, session) -> None:
+        """The words new to this process, in the transaction of the data that uses them: the
+        vocabulary never misses a stored word, and costs no write of its own."""
+        for collection, entries in self._new_vocabulary(written).items():
+            self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False,
+                                           session=session)
 
     def _transaction(self, work):
         with self.client.start_session() as session:
             return session.with_transaction(work)
 
     def _catalogue(self, written: docs.Documents) -> None:
-        """Record the stored types in `types` and the words in `terms` and `labels`, once
-        per process."""
+        """After a commit: record the stored types in `types`, once per process."""
         for name in self._not_yet_catalogued(written.type_names):
             self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
-        for collection, entries in self._new_vocabulary(written).items():
-            self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False)
-            self._remember_words(collection, entries)
+        self._remember_words(written)
 
     # --- the store as a whole -----------------------------------------------------------
 

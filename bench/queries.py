@@ -100,12 +100,10 @@ def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000)
     rng = np.random.default_rng(5)
     kinds = templates()
     world = World(rng, sorted(kinds))
-    vocabulary = documents.Documents()
-    for docs in kinds.values():
-        for doc in docs:
-            vocabulary.terms.update(doc["search"]["terms"])
-            vocabulary.labels.update(doc["search"]["labels"])
-    for collection, entries in documents.vocabulary_documents(vocabulary).items():
+    searches = [doc["search"] for docs in kinds.values() for doc in docs]
+    vocabulary = documents.vocabulary_documents({t for s in searches for t in s["terms"]},
+                                                {label for s in searches for label in s["labels"]})
+    for collection, entries in vocabulary.items():
         store.db[collection].bulk_write(vocabulary_upserts(entries))
     for collection in (CLUSTERS, EVENTS):  # indexes are built after the bulk load: faster
         store.db[collection].drop_indexes()

@@ -276,13 +276,13 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     }
 
 
-def vocabulary_documents(written: Documents) -> dict[str, list[dict]]:
+def vocabulary_documents(terms: Iterable[str], labels: Iterable[str]) -> dict[str, list[dict]]:
     """The `terms` (with trigrams, to find misspelt words' neighbours) and `labels` (with
-    their words, to find objects by any word of a name) that written clusters use."""
+    their words, to find objects by any word of a name) documents of these words."""
     return {
-        TERMS: [{"_id": t, "grams": search_keys.trigrams(t)} for t in sorted(written.terms)],
+        TERMS: [{"_id": t, "grams": search_keys.trigrams(t)} for t in sorted(terms)],
         LABELS: [{"_id": label, "words": sorted(set(search_keys.words(label)))}
-                   for label in sorted(written.labels)],
+                 for label in sorted(labels)],
     }
 
 

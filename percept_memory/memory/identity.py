@@ -160,10 +160,11 @@ U_MIN = 1e-4  # -log similarity below this is "identical" (noise-free data)
 LOG_ODDS_LIMIT = 12.0  # no single cue is surer than e^12 : 1
 
 
-def surprise(similarity: float) -> float:
-    """-log similarity: 0 for identical, growing with distance (the squared distance over
-    4 sigma^2 for the Gaussian similarities of eq. 6.1)."""
-    return max(-math.log(max(similarity, 1e-300)), U_MIN)
+def surprise(similarity):
+    """-log similarity (of a value or an array): 0 for identical, growing with distance (the
+    squared distance over 4 sigma^2 for the Gaussian similarities of eq. 6.1)."""
+    u = np.maximum(-np.log(np.maximum(similarity, 1e-300)), U_MIN)
+    return float(u) if np.ndim(u) == 0 else u
 
 
 @dataclass
@@ -218,7 +219,7 @@ class Cue:
         """The likelihood ratio of a similarity (or of an array of them, NaN or None where
         there is nothing to compare: no evidence either way, odds 1)."""
         given = np.asarray(similarity, dtype=float)
-        u = np.maximum(-np.log(np.maximum(given, 1e-300)), max(U_MIN, self._peak()))
+        u = np.maximum(surprise(given), self._peak())
         log_odds = self.same.log_density(u) - self.different.log_density(u)
         odds = np.where(np.isnan(given), 1.0,
                         np.exp(np.clip(log_odds, -LOG_ODDS_LIMIT, LOG_ODDS_LIMIT)))

@@ -84,11 +84,11 @@ class StoreBase:
 
     def _new_vocabulary(self, written: docs.Documents) -> dict[str, list[dict]]:
         """The terms and labels of a write that this process has not written before."""
-        new = {}
-        for collection, entries in docs.vocabulary_documents(written).items():
-            if fresh := [e for e in entries if (collection, e["_id"]) not in self._known_words]:
-                new[collection] = fresh
-        return new
+        known = self._known_words
+        found = docs.vocabulary_documents(
+            [t for t in written.terms if (TERMS, t) not in known],
+            [label for label in written.labels if (LABELS, label) not in known])
+        return {collection: entries for collection, entries in found.items() if entries}
 
     def _remember_words(self, written: docs.Documents) -> None:
         """After a commit: the words of this write are in the vocabulary."""

@@ -3,6 +3,7 @@ pictures (scene images or crops) with the clusters' boxes, and the count of what
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -41,7 +42,7 @@ class Picture:
     instances: list[tuple[Item, pixels.Instance]]
 
 
-class Writer:
+class Writer(ABC):
     """Base of the formats. `add` takes a scene's items, `finish` writes what is left."""
 
     def __init__(self, archive: Archive, query: ExportQuery, summary: Summary):
@@ -49,8 +50,9 @@ class Writer:
         self.provenance = Spool()
         self.classes: dict[str, int] = {}  # label -> class id, in order of first appearance
 
+    @abstractmethod
     def add(self, items: list[Item]) -> None:
-        raise NotImplementedError
+        """Write one scene's items in the format (each format has its own)."""
 
     def finish(self) -> None:
         """The format's own entries at the end; then the provenance sidecar."""

@@ -160,7 +160,6 @@ class AsyncMemoryStore(StoreBase):
             await self.clusters.replace_one(
                 {"_id": cluster_id}, written.clusters[0], session=session
             )
-            await self._write_vocabulary(written, session)
             summary = docs.summary_change(doc, written.clusters[0])
             if summary == docs.RECOUNT:
                 await self._summarise(doc["scene_id"], session)
@@ -212,13 +211,6 @@ class AsyncMemoryStore(StoreBase):
         await self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             await self.clusters.insert_many(written.clusters, session=session)
-        await self._write_vocabulary(written, session)
-
-    async def _write_vocabulary(self, written: docs.Documents, session) -> None:
-        """See MemoryStore._write_vocabulary."""
-        for collection, entries in self._new_vocabulary(written).items():
-            await self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False,
-                                                 session=session)
 
     async def _transaction(self, work):
         async with self.client.start_session() as session:
@@ -227,6 +219,8 @@ class AsyncMemoryStore(StoreBase):
     async def _catalogue(self, written: docs.Documents) -> None:
         for name in self._not_yet_catalogued(written.type_names):
             await self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+        for collection, entries in self._new_vocabulary(written).items():
+            await self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False)
         self._remember_words(written)
 
     async def catalogue(self) -> list[dict]:

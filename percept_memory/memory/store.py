@@ -262,7 +262,6 @@ class MemoryStore(StoreBase):
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
-            self._write_vocabulary(written, session)
             summary = docs.summary_change(doc, written.clusters[0])
             if summary == docs.RECOUNT:
                 self._summarise(doc["scene_id"], session)
@@ -335,23 +334,20 @@ class MemoryStore(StoreBase):
         self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             self.clusters.insert_many(written.clusters, session=session)
-        self._write_vocabulary(written, session)
-
-    def _write_vocabulary(self, written: docs.Documents, session) -> None:
-        """The words new to this process, in the transaction of the data that uses them: the
-        vocabulary never misses a stored word, and costs no write of its own."""
-        for collection, entries in self._new_vocabulary(written).items():
-            self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False,
-                                           session=session)
 
     def _transaction(self, work):
         with self.client.start_session() as session:
             return session.with_transaction(work)
 
     def _catalogue(self, written: docs.Documents) -> None:
-        """After a commit: record the stored types in `types`, once per process."""
+        """After a commit: record the stored types in `types` and the words new to this
+        process in `terms` and `labels` (outside the transaction: words are derived data that
+        `reindex` restores, and in a transaction they make one that outgrows the server's
+        cache fail as a write conflict instead of being split)."""
         for name in self._not_yet_catalogued(written.type_names):
             self.types.replace_one({"_id": name}, catalogue_entry(name), upsert=True)
+        for collection, entries in self._new_vocabulary(written).items():
+            self.db[collection].bulk_write(vocabulary_upserts(entries), ordered=False)
         self._remember_words(written)
 
     # --- the store as a whole -----------------------------------------------------------

@@ -47,8 +47,8 @@ class Documents:
     clusters: list[dict] = field(default_factory=list)
     blobs: dict[str, bytes] = field(default_factory=dict)
     type_names: set[str] = field(default_factory=set)
-    terms: set[str] = field(default_factory=set)  # the vocabulary the clusters use
-    labels: set[str] = field(default_factory=set)
+    terms: set[str] = field(default_factory=set)  # the vocabulary: words to spell-correct to
+    labels: set[str] = field(default_factory=set)  # and labels to find by their words
 
     def encode(self, value: Scene | Cluster, threshold: int) -> dict:
         """The document of one object. Each document lists the blobs it refers to itself,
@@ -198,8 +198,8 @@ def _cluster_document(
     doc = out.encode(cluster, threshold)
     doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot)
     search["fields"] = search_keys.field_entries(doc.get("annotations", ()))
-    out.terms.update(search["terms"])
-    out.labels.update(search["labels"])
+    out.terms.update(filter(search_keys.misspellable, search["terms"]))
+    out.labels.update(label for label in search["labels"] if not search_keys.one_word(label))
     return doc
 
 

@@ -79,7 +79,9 @@ def find_mongod() -> Path:
 class EmbeddedMongod:
     """One managed mongod process, identified by its data dir."""
 
-    def __init__(self, data_dir: Path, port: int, cache_gb: float, oplog_mb: int) -> None:
+    def __init__(
+        self, data_dir: Path, port: int, cache_gb: float | None, oplog_mb: int
+    ) -> None:
         self.data_dir = Path(data_dir)
         self.port = port
         self.cache_gb = cache_gb
@@ -206,13 +208,15 @@ class EmbeddedMongod:
             "--port", str(self.port),
             "--replSet", REPLICA_SET,
             "--oplogSize", str(self.oplog_mb),
-            "--wiredTigerCacheSizeGB", str(self.cache_gb),
             "--logpath", str(self.log_path),
             "--logappend",
             "--fork",
             "--pidfilepath", str(self.pid_path),
         ]
         # fmt: on
+        if self.cache_gb is not None:  # else MongoDB's default: a small cache costs CPU in
+            # evicting dirty pages (bench/ingest.py: half the throughput at 0.25 GB)
+            command += ["--wiredTigerCacheSizeGB", str(self.cache_gb)]
         log.info("Starting mongod on %s:%d with data in %s ...", HOST, self.port, self.data_dir)
         try:
             result = subprocess.run(

@@ -18,8 +18,8 @@ CALIBRATION = "calibration"  # what identity resolution learnt about the sensors
 JOBS = "jobs"
 LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"
-TERMS = "terms"  # the words clusters use, with their trigrams (misspelling-tolerant search)
-LABELS = "labels"  # the labels clusters carry, with their words (objects by any word of a name)
+TERMS = "terms"  # the words clusters use, digits aside, with their trigrams (for misspellings)
+LABELS = "labels"  # labels of several words, by their words (objects by any word of a name)
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
 

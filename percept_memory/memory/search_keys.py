@@ -1,7 +1,7 @@
 """The index keys derived from what a cluster says, so every kind of query has an index to use.
 
 - words: the terms of labels and texts (`search.terms`), and the trigrams that find a
-  misspelt word's neighbours in the vocabulary;
+  misspelt word's neighbours in the vocabulary (words without digits: codes are exact);
 - cells: 3D voxel keys at several sizes (`search.cells`). MongoDB's geo indexes are 2D
   only, so a box, a sphere or the k nearest are found as the cells around them, then filtered
   exactly by position; x, y and z are kept as scalars beside them (`search.x`...), so that the
@@ -26,12 +26,25 @@ from percept_memory.converters import escape_key
 # --- words --------------------------------------------------------------------------------
 
 _WORD = re.compile(r"[^\W_]+")
+_DIGIT = re.compile(r"\d")
 
 
 def words(text: str) -> list[str]:
     """The terms of a text, casefolded, in order: "Kellogg's Corn-Flakes" -> kellogg, s, corn,
     flakes. Letters and digits only, so a term is never query syntax."""
     return _WORD.findall(text.casefold())
+
+
+def misspellable(word: str) -> bool:
+    """Whether a misspelt query word should find this one: not when it holds a digit (a code
+    or a quantity, "4006381333931", "500g"), where one character off names another thing."""
+    return _DIGIT.search(word) is None
+
+
+def one_word(label: str) -> bool:
+    """Whether a label is a single term as it stands ("cereal", not "Ja!" or "corn flakes"):
+    found by that term itself, it needs no entry mapping its words to it."""
+    return words(label) == [label]
 
 
 def trigrams(word: str) -> list[str]:

@@ -34,9 +34,10 @@ class Settings(BaseSettings):
         default=27117, ge=1, le=65535,
         description="PMEM_MONGOD_PORT: loopback port of the embedded mongod",
     )
-    mongod_cache_gb: float = Field(
-        default=0.25, gt=0,
-        description="PMEM_MONGOD_CACHE_GB: WiredTiger cache size of the embedded mongod",
+    mongod_cache_gb: float | None = Field(
+        default=None, gt=0,
+        description="PMEM_MONGOD_CACHE_GB: WiredTiger cache size of the embedded mongod; "
+        "unset = MongoDB's default, half of (RAM - 1 GB)",
     )
     mongod_oplog_mb: int = Field(
         default=256, ge=32,

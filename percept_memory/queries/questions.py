@@ -50,12 +50,10 @@ def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     if not query_words:
         raise QueryError(f"{x!r} names nothing: give words, an object id or a cluster id")
     expansions = yield from expand(query_words)
-    labels = yield Find(LABELS, {"words": {"$in": all_terms(expansions)}}, {"_id": 1},
-                        limit=MAX_LABELS)
-    if not labels:
-        return []
-    objects = yield Find(OBJECTS, {"names": {"$in": [doc["_id"] for doc in labels]}},
-                         limit=MAX_CANDIDATES)
+    terms = all_terms(expansions)
+    labels = yield Find(LABELS, {"words": {"$in": terms}}, {"_id": 1}, limit=MAX_LABELS)
+    names = sorted({*terms, *(doc["_id"] for doc in labels)})  # a one-word name is its word
+    objects = yield Find(OBJECTS, {"names": {"$in": names}}, limit=MAX_CANDIDATES)
     scored = [(o, word_score(expansions, name_words(o)) / len(query_words)) for o in objects]
     scored.sort(key=lambda s: (-s[1], STATE_ORDER.get(s[0].get("state"), 3),
                                -(s[0].get("last_seen") or 0)))

@@ -3,8 +3,9 @@
 A word matches its own term and the terms of the vocabulary (`terms`, every word any cluster
 used) within a few edits of it: "prinles" finds "pringles". Candidates come from the trigram
 index of the vocabulary (two words within d edits share most of their trigrams), the edit
-distance decides (rapidfuzz). A phrase must appear as consecutive words in one label or text.
-A cluster's score is the sum over the query's words of the best match it has: 1 for the word
+distance decides (rapidfuzz). Words with a digit (codes, quantities) match exactly: one
+character off names another thing. A phrase must appear as consecutive words in one label or
+text. A cluster's score is the sum over the query's words of the best match it has: 1 for the word
 itself, less for a neighbour, by how many edits away it is.
 """
 
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 from rapidfuzz.distance import Levenshtein
 
 from percept_memory.memory.schema import TERMS
-from percept_memory.memory.search_keys import trigrams, words
+from percept_memory.memory.search_keys import misspellable, trigrams, words
 
 from .ops import Aggregate, Plan
 
@@ -42,6 +43,8 @@ Expansions = dict[str, dict[str, float]]
 
 def max_edits(word: str) -> int:
     """How many edits a word of this length may be away from a term and still find it."""
+    if not misspellable(word):
+        return 0
     return 0 if len(word) <= 3 else 1 if len(word) <= 5 else 2
 
 

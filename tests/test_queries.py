@@ -16,7 +16,7 @@ from percept_memory.ingest import kitchen_week as kw
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
-from percept_memory.memory.types import Cluster, Location, Scene
+from percept_memory.memory.types import Cluster, Location, Logo, Scene, Text
 from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
 from percept_memory.queries.model import ClusterQuery
 from percept_memory.queries.ops import QueryError
@@ -101,6 +101,16 @@ def test_predicates_on_mapping_keys_and_on_types_this_version_does_not_know(engi
     (hit,) = engine.clusters(where="rs.annotation.Weight:grams>1000").items
     assert hit.id == scene.clusters[0].id
     assert not engine.clusters(where="rs.annotation.Weight:grams>2000").items
+
+
+def test_a_value_two_types_share_is_found_for_each_type(engine, store):
+    shared = "GogglesAnnotator"
+    scene = Scene(timestamp=2, robot="goggles", clusters=[Cluster(annotations=[
+        Text(source=shared, text="CORN FLAKES"), Logo(source=shared, brand="Kellogg's")])])
+    store.put_scene(scene)
+    for kind in ("text", "logo"):
+        hits = engine.clusters(robot="goggles", where=f"{kind}:source={shared}").items
+        assert [h.id for h in hits] == [scene.clusters[0].id], kind
 
 
 def test_region_robot_and_time_range(engine, store):

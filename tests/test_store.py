@@ -287,14 +287,21 @@ def test_counts_per_collection_and_type(store):
 
 @pytest.mark.parametrize("query", [
     {"scene_id": ObjectId()},
-    {"search.labels": "cereal"},
+    {"search.terms": "cereal"},
     {"search.region": "counter_top_sink", "search.time": {"$gt": 0}},
-    {"search.types": "pm.annotation.Logo"},
+    {"search.fields": {"$elemMatch": {"k": "pm.annotation.Logo:brand", "v": "Ja!"}}},
     {"object_id": ObjectId()},
 ])
 def test_cluster_query_paths_use_an_index(store, query):
     plan = store.clusters.find(query).explain()["queryPlanner"]["winningPlan"]
     assert "IXSCAN" in str(plan), plan
+
+
+def test_prepare_drops_the_indexes_no_query_uses_any_more(store):
+    store.clusters.create_index("search.labels", name="labels")  # as an older version did
+    store.prepare()
+    present = set(store.clusters.index_information())
+    assert "labels" not in present and {"fields", "terms_newest", "cells_newest_xyz"} <= present
 
 
 # --- the async store -------------------------------------------------------------------

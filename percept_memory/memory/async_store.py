@@ -25,7 +25,7 @@ from .errors import (
     require_replica_set,
     unreachable,
 )
-from .schema import COUNTED_COLLECTIONS, INDEXES, catalogue_entry
+from .schema import COUNTED_COLLECTIONS, INDEXES, RETIRED_INDEXES, catalogue_entry
 from .settings import Settings
 from .store import CLIENT_OPTIONS, HALVE, ClusterChange, StoreBase, halves, vocabulary_upserts
 from .types import Annotation, Cluster, Scene
@@ -54,6 +54,9 @@ class AsyncMemoryStore(StoreBase):
         require_replica_set(await self.client.admin.command("hello"))
         for name, indexes in INDEXES.items():
             await self.db[name].create_indexes(indexes)
+        for name, retired in RETIRED_INDEXES.items():
+            for index in set(retired) & set(await self.db[name].index_information()):
+                await self.db[name].drop_index(index)
 
     async def close(self) -> None:
         await self.client.close()

@@ -2,8 +2,8 @@
 
 A scene is one document in `scenes` (its clusters replaced by their ids) plus one document per
 cluster in `clusters`. Cluster documents carry denormalised query fields under `search` (scene
-time and robot, region, position, labels, text, perceptual hash, annotation types) so that
-queries never join. Both stores, sync and async, use these functions and only add the I/O.
+time and robot, region, position, labels, text, annotation types) so that queries never join.
+Both stores, sync and async, use these functions and only add the I/O.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from percept_memory.converters import DecodeContext, EncodeContext, Unknown, dec
 from . import search_keys
 from .errors import NotFound
 from .schema import LABELS, TERMS
-from .types import Annotation, Cluster, ImageROI, Scene, datetime_from_timestamp
+from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 
 SEARCH_KEY = "search"  # derived query fields, recomputed on every write
 BLOBS_KEY = "_blobs"  # ids of the GridFS blobs a document refers to
@@ -256,7 +256,6 @@ def scene_key(scene: Scene | Mapping) -> tuple[str, int]:
 def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     """The denormalised query fields of a cluster."""
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
-    roi = cluster.hypothesis_of(ImageROI)
     labels = {label.strip().casefold() for a in annotations for label in a.labels() if label}
     texts = [text for a in annotations for text in a.texts() if text]
     position = cluster.position
@@ -268,7 +267,6 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
         "labels": sorted(labels),
         "text": texts,
         "terms": sorted({w for t in (*labels, *texts) for w in search_keys.words(t)}),
-        "phash": roi.phash if roi else None,
         "types": sorted(
             {a.type_name for a in annotations}
             | {a.type_name for a in cluster.annotations if isinstance(a, Unknown)}

@@ -46,6 +46,7 @@ INDEXES: dict[str, list[IndexModel]] = {
     ],
     # Each query path of queries/ has an index ending in (time, _id): results come newest
     # first, and a cursor resumes after the last (time, _id) seen, without sorting in memory.
+    # Nothing else is indexed: each index entry costs every write (bench/ingest.py).
     CLUSTERS: [
         IndexModel([("scene_id", ASCENDING)], name="scene"),
         _newest("object_id", name="object_newest"),
@@ -56,11 +57,8 @@ INDEXES: dict[str, list[IndexModel]] = {
         # with the coordinates: the k nearest are ranked from the index alone (queries/space.py)
         _newest("search.cells", name="cells_newest_xyz",
                 then=("search.x", "search.y", "search.z")),
-        _newest("search.types", name="types_newest"),
         IndexModel([("search.fields.k", ASCENDING), ("search.fields.v", ASCENDING)],
                    name="fields"),
-        IndexModel([("search.labels", ASCENDING)], name="labels"),
-        IndexModel([("search.phash", ASCENDING)], name="phash", sparse=True),
     ],
     TERMS: [IndexModel([("grams", ASCENDING)], name="grams")],
     LABELS: [IndexModel([("words", ASCENDING)], name="words")],
@@ -96,6 +94,9 @@ INDEXES: dict[str, list[IndexModel]] = {
     GRIDFS_FILES: [IndexModel([("filename", ASCENDING), ("uploadDate", ASCENDING)])],
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],
 }
+
+RETIRED_INDEXES = {CLUSTERS: ("types_newest", "labels", "phash")}
+"""Indexes earlier versions created that no query uses any more: dropped by `prepare`."""
 
 COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, JOBS, LOOKUP_CACHE, TYPES, TERMS, LABELS,
                        GRIDFS_FILES)

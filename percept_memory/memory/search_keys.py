@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 
 from bson.int64 import Int64
 
@@ -110,7 +110,6 @@ def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) 
 # --- fields -------------------------------------------------------------------------------
 
 SCALARS = frozenset({str, bool, int, float, Int64})  # exact types: encoded documents are plain
-FIELD_DEPTH = 2  # `confidences.cereal`, `properties.perishable`; deeper values are not keyed
 _NOT_FIELDS = frozenset({"_id", "_type"})
 
 
@@ -120,31 +119,27 @@ def field_key(type_name: str, path: str) -> str:
 
 def field_entries(annotations: Iterable[Mapping]) -> list[dict]:
     """{k, v} for every scalar field of every annotation document (any type, `_id` and
-    `_type` aside), nested mappings down to FIELD_DEPTH; lists and typed values (arrays,
-    images, poses) are left out. Duplicates are dropped. (Runs for every stored cluster:
-    written for speed, with exact type tests.)"""
-    seen: set = set()
-    out = []
+    `_type` aside) and for the scalars of its mappings one level down (`confidences.cereal`,
+    `properties.perishable`); lists and typed values (arrays, images, poses) are left out.
+    Duplicates are dropped. (Runs for every stored cluster: written for speed, with exact
+    type tests; NaN is not a value to look up.)"""
+    entries: dict[tuple, None] = {}  # (k, type, v), in order, each once
     for annotation in annotations:
         name = annotation.get("_type")
         if type(name) is not str:
             continue
-        for path, value in _scalars(annotation, "", 1):
-            key = (path, type(value), value)
-            if key not in seen:
-                seen.add(key)
-                out.append({"k": f"{name}:{path}", "v": value})
-    return out
-
-
-def _scalars(doc: Mapping, prefix: str, depth: int) -> Iterator[tuple[str, object]]:
-    for key, value in doc.items():
-        kind = type(value)
-        if kind in SCALARS:
-            if key not in _NOT_FIELDS and value == value:  # (NaN is not a value to look up)
-                yield prefix + key, value
-        elif kind is dict and depth < FIELD_DEPTH and "_type" not in value:
-            yield from _scalars(value, f"{prefix}{key}.", depth + 1)
+        prefix = name + ":"
+        for key, value in annotation.items():
+            kind = type(value)
+            if kind in SCALARS:
+                if value == value and key not in _NOT_FIELDS:
+                    entries[prefix + key, kind, value] = None
+            elif kind is dict and "_type" not in value:
+                inner = f"{prefix}{key}."
+                for sub, item in value.items():
+                    if type(item) in SCALARS and item == item and sub not in _NOT_FIELDS:
+                        entries[inner + sub, type(item), item] = None
+    return [{"k": k, "v": v} for k, _, v in entries]
 
 
 def field_path(first: str, rest: Iterable[str]) -> str:

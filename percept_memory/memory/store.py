@@ -37,6 +37,7 @@ from .schema import (
     GRIDFS_FILES,
     INDEXES,
     LABELS,
+    RETIRED_INDEXES,
     SCENES,
     TERMS,
     TYPES,
@@ -137,10 +138,14 @@ class MemoryStore(StoreBase):
         return store
 
     def prepare(self) -> None:
-        """Check the server can do transactions and create the indexes (idempotent)."""
+        """Check the server can do transactions, create the indexes and drop retired ones
+        (idempotent)."""
         require_replica_set(self.client.admin.command("hello"))
         for name, indexes in INDEXES.items():
             self.db[name].create_indexes(indexes)
+        for name, retired in RETIRED_INDEXES.items():
+            for index in set(retired) & set(self.db[name].index_information()):
+                self.db[name].drop_index(index)
 
     def close(self) -> None:
         self.client.close()

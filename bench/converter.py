@@ -92,6 +92,11 @@ def _store_overhead(store: MemoryStore, count: int, image, progress: Progress) -
         raw_scenes.insert_many(docs.scenes)
         raw_clusters.insert_many(docs.clusters)
 
+    def as_dicts(written: documents.Documents) -> documents.Documents:
+        """The documents as a pymongo user holds them: dicts, encoded by insert_many."""
+        return documents.Documents(scenes=[bson.decode(d.raw) for d in written.scenes],
+                                   clusters=[bson.decode(d.raw) for d in written.clusters])
+
     ours, raw = [], []
     task = progress.add_task("scenes", total=count)
     store.put_scene(synthetic.scene(rng, next(stamps), 6, image))  # warm up the catalogue
@@ -100,7 +105,7 @@ def _store_overhead(store: MemoryStore, count: int, image, progress: Progress) -
         ours.append(timed(store.put_scene, [scene]))
         other = synthetic.scene(rng, next(stamps), 6, image)
         documents.assign_ids(other)
-        written = documents.scene_documents([other], store.gridfs_threshold)
+        written = as_dicts(documents.scene_documents([other], store.gridfs_threshold))
         raw.append(timed(raw_insert, [written]))
         progress.advance(task)
     ratio = statistics.median(ours) / statistics.median(raw)

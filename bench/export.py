@@ -24,6 +24,7 @@ import subprocess
 import sys
 import time
 
+import bson
 from bson import ObjectId
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -46,11 +47,12 @@ def templates() -> list[tuple[dict, list[dict]]]:
     for scene in week.scenes:
         scene.ensure_id()
     written = documents.scene_documents(week.scenes, threshold=2**30)
-    clusters = {doc["_id"]: doc for doc in written.clusters}
+    clusters = {doc["_id"]: doc for doc in (bson.decode(raw.raw) for raw in written.clusters)}
     for doc in clusters.values():
         doc["annotations"] = [a for a in doc["annotations"] if a["_type"] != HISTOGRAM]
-    return [(scene, [clusters[c] for c in scene["clusters"]])
-            for scene in written.scenes if scene["clusters"]]
+    scenes = [bson.decode(raw.raw) for raw in written.scenes]
+    return [(scene, [clusters[c] for c in scene["clusters"]]) for scene in scenes
+            if scene["clusters"]]
 
 
 def build(store: MemoryStore, count: int, progress: Progress, batch: int = 2000) -> None:

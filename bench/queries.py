@@ -22,6 +22,7 @@ import argparse
 import statistics
 import time
 
+import bson
 import numpy as np
 from bson import ObjectId
 from rich.console import Console
@@ -50,7 +51,8 @@ def templates() -> dict[str, list[dict]]:
     written = documents.scene_documents(week.scenes, threshold=2**30)
     kinds: dict[str, list[dict]] = {}
     truth = [o for scene in week.truth.scenes for o in scene.objects]
-    for doc, object_id in zip(written.clusters, truth, strict=True):
+    for raw, object_id in zip(written.clusters, truth, strict=True):
+        doc = bson.decode(raw.raw)
         doc.pop("hypotheses", None)
         doc.pop(documents.BLOBS_KEY, None)
         doc["annotations"] = [a for a in doc["annotations"]

@@ -13,7 +13,9 @@ from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from typing import Any
 
+import bson
 from bson import ObjectId
+from bson.raw_bson import RawBSONDocument
 
 from percept_memory.converters import DecodeContext, EncodeContext, Unknown, decode, encode
 
@@ -123,7 +125,9 @@ def annotation_id(annotation: Annotation | Unknown):
 
 
 def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
-    """The documents of scenes whose ids are assigned, for one write."""
+    """The documents of scenes whose ids are assigned, for one write, as BSON at once: their
+    dicts are freed as soon as they are built, instead of being walked by the garbage
+    collector again and again while a batch waits for its commit (a fifth of ingest time)."""
     out = Documents()
     for scene in scenes:
         clusters = [
@@ -134,8 +138,8 @@ def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
         doc["clusters"] = [c.id for c in scene.clusters]
         doc["time"] = datetime_from_timestamp(scene.timestamp)
         doc[SUMMARY_KEY] = scene_summary(doc, clusters)
-        out.scenes.append(doc)
-        out.clusters.extend(clusters)
+        out.scenes.append(as_bson(doc))
+        out.clusters.extend(map(as_bson, clusters))
     return out
 
 
@@ -190,6 +194,11 @@ def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Docu
     search = stored[SEARCH_KEY]
     out.clusters.append(_cluster_document(cluster, search["time"], search["robot"], threshold, out))
     return out
+
+
+def as_bson(doc: dict) -> RawBSONDocument:
+    """A document encoded once: pymongo sends its bytes as they are."""
+    return RawBSONDocument(bson.encode(doc))
 
 
 def _cluster_document(

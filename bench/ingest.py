@@ -45,6 +45,14 @@ def scenes(count: int, start: int, image, seed: int):
     return [synthetic.scene(rng, start + i * 33_000_000, CLUSTERS, image) for i in range(count)]
 
 
+def server_cpu_s(store: MemoryStore) -> float | None:
+    """CPU seconds the MongoDB server has used (user + system), where it reports them."""
+    info = store.client.admin.command("serverStatus").get("extra_info", {})
+    if "user_time_us" not in info:
+        return None
+    return (info["user_time_us"] + info.get("system_time_us", 0)) / 1e6
+
+
 def in_process(store: MemoryStore, count: int, batch: int, image, progress: Progress) -> dict:
     generated = scenes(count, 1_700_000_000_000_000_000, image, seed=1)
     # A robot streams scenes in; it does not hold a thousand of them at once. Freezing the
@@ -53,17 +61,30 @@ def in_process(store: MemoryStore, count: int, batch: int, image, progress: Prog
     gc.freeze()
     task = progress.add_task("in-process", total=count)
     service = IngestService(store, batch_size=batch)
+    server_start, client_start = server_cpu_s(store), time.process_time()
     start = time.perf_counter()
     for _ in service.ingest_stream((str(i), s) for i, s in enumerate(generated)):
         progress.advance(task)
     seconds = time.perf_counter() - start
+    clusters = count * CLUSTERS
+    client_us = (time.process_time() - client_start) / clusters * 1e6
+    server_end = server_cpu_s(store)
+    server_us = None if server_end is None else (server_end - server_start) / clusters * 1e6
     return {
         "scenes": count,
         "batch": batch,
-        "clusters_per_s": round(count * CLUSTERS / seconds),
-        "annotations_per_s": round(count * CLUSTERS * 20 / seconds),
+        "clusters_per_s": round(clusters / seconds),
+        "annotations_per_s": round(clusters * 20 / seconds),
         "target_clusters_per_s": TARGET,
-        "met": count * CLUSTERS / seconds >= TARGET,
+        "met": clusters / seconds >= TARGET,
+        # Where the time goes: CPU per stored cluster in this process (encoding, the driver)
+        # and in mongod (documents, index entries, oplog, journal), and the cores those take
+        # at the target rate (this machine has os.cpu_count(), mongod included).
+        "client_cpu_us_per_cluster": round(client_us),
+        "mongod_cpu_us_per_cluster": None if server_us is None else round(server_us),
+        "cores_needed_for_target": None if server_us is None else round(
+            (client_us + server_us) * TARGET / 1e6, 2),
+        "cores": os.cpu_count(),
     }
 
 

@@ -45,8 +45,8 @@ class SceneIds:
 class Documents:
     """Everything one write stores: documents, the blobs they refer to, the type names used."""
 
-    scenes: list[dict] = field(default_factory=list)
-    clusters: list[dict] = field(default_factory=list)
+    scenes: list[Mapping] = field(default_factory=list)  # as BSON when a whole scene is written
+    clusters: list[Mapping] = field(default_factory=list)
     blobs: dict[str, bytes] = field(default_factory=dict)
     type_names: set[str] = field(default_factory=set)
     terms: set[str] = field(default_factory=set)  # the vocabulary: words to spell-correct to

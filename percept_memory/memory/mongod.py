@@ -215,7 +215,7 @@ class EmbeddedMongod:
         ]
         # fmt: on
         if self.cache_gb is not None:  # else MongoDB's default: a small cache costs CPU in
-            # evicting dirty pages (bench/ingest.py: half the throughput at 0.25 GB)
+            # evicting dirty pages (bench/ingest.py: 1.5-2x mongod's CPU per cluster at 0.25 GB)
             command += ["--wiredTigerCacheSizeGB", str(self.cache_gb)]
         log.info("Starting mongod on %s:%d with data in %s ...", HOST, self.port, self.data_dir)
         try:

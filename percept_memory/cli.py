@@ -11,6 +11,7 @@ import asyncio
 import json
 import logging
 import os
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -23,13 +24,20 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from percept_memory.ingest import kitchen_week, rgbd, robosherlock
 from percept_memory.ingest.backends import BackendSetupError
-from percept_memory.ingest.jobs import STATES, LookupEnqueuer, job_report, requeue_failed
+from percept_memory.ingest.jobs import STATES, job_report, requeue_failed
 from percept_memory.ingest.scene_log import read_scene_log
-from percept_memory.ingest.service import ImportSummary, IngestError, IngestService, SourceError
+from percept_memory.ingest.service import (
+    ImportSummary,
+    IngestError,
+    IngestService,
+    SourceError,
+    memory_pipeline,
+)
 from percept_memory.ingest.workers import run_worker, worker_processes
-from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
+from percept_memory.memory.pipeline import Pipeline, request_rebuild, retry_held
+from percept_memory.memory.pipeline import status as pipeline_status
 from percept_memory.memory.settings import Settings, settings_help
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
@@ -174,22 +182,39 @@ def progress_bar(label: str) -> Progress:
 def ingest_with_progress(
     store: MemoryStore, source: str, items, context: dict | None = None
 ) -> ImportSummary:
-    """Feed (label, scene) items through the ingest service with a progress bar on stderr."""
+    """Feed (label, scene) items through the ingest service with a progress bar on stderr,
+    the memory pipeline consolidating them meanwhile; returns once their belief is current."""
     summary = ImportSummary()
-    with progress_bar(source) as progress:
-        task = progress.add_task(source, total=None)
-        service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
-        for ingested in service.ingest_stream(items, context):
-            summary.add(ingested)
-            progress.advance(task)
+    pipeline = memory_pipeline(store).start()
+    try:
+        with progress_bar(source) as progress:
+            task = progress.add_task(source, total=None)
+            service = IngestService(store, pipeline=pipeline)
+            for ingested in service.ingest_stream(items, context):
+                summary.add(ingested)
+                progress.advance(task)
+    finally:
+        pipeline.stop()
+    drain_with_progress(store, pipeline)
     return summary
 
 
+def drain_with_progress(store: MemoryStore, pipeline: Pipeline) -> None:
+    """Run the pipeline until no scene is pending, with a progress bar on stderr."""
+    with progress_bar("belief") as bar:
+        task = bar.add_task("scenes", total=pipeline.pending())
+        pipeline.drain(progress=lambda done: bar.advance(task, done))
+
+
 def echo_summary(source: str, summary: ImportSummary) -> None:
-    click.echo(f"{source}: {summary.scenes_new} new scenes, {summary.scenes_existing} stored "
-               f"before, {summary.clusters} clusters")
+    click.echo(f"{source}: {summary.scenes_new} new {_plural(summary.scenes_new, 'scene')}, "
+               f"{summary.scenes_existing} stored before, {summary.clusters} clusters")
     for name, count in sorted(summary.types.items()):
         click.echo(f"  {name:<36} {count:>8,}")
+
+
+def _plural(count: int, word: str) -> str:
+    return word if count == 1 else word + "s"
 
 
 def labelled(source: str, scenes):
@@ -218,14 +243,16 @@ def import_scene_log(settings: Settings, folder: Path) -> None:
 @click.option("--uri", help="a live RoboSherlock MongoDB instead of a mongodump folder")
 @click.option("--db", "database", help="the RoboSherlock database name (with --uri)")
 @click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
+@click.option("--map", "map_name", help="the map the scenes belong to  "
+              "[default: robosherlock/<folder or db name>]")
 @click.pass_obj
 def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None,
-                        database: str | None, robot: str) -> None:
+                        database: str | None, robot: str, map_name: str | None) -> None:
     """RoboSherlock's storage: a mongodump FOLDER, or a live database (--uri and --db)."""
     if (folder is None) == (uri is None) or (uri is not None and not database):
         raise click.UsageError("give a mongodump FOLDER, or --uri and --db")
-    scenes = robosherlock.read_dump(folder, robot) if folder else robosherlock.read_database(
-        uri, database, robot)
+    scenes = robosherlock.read_dump(folder, robot, map_name) if folder else \
+        robosherlock.read_database(uri, database, robot, map_name)
     source = folder.name if folder else f"{database}@{redacted(uri)}"
     with MemoryStore.open(settings) as store:
         summary = ingest_with_progress(store, source, labelled(source, scenes))
@@ -235,12 +262,13 @@ def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None
 @import_.command(name="rgbd")
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
+@click.option("--map", "map_name", help="the map the scenes belong to  [default: rgbd/<folder>]")
 @click.pass_obj
-def import_rgbd(settings: Settings, folder: Path, robot: str) -> None:
+def import_rgbd(settings: Settings, folder: Path, robot: str, map_name: str | None) -> None:
     """RGB-D samples: PNG + depth PNG + viewpoint, or PNG + PCD (+ ground-truth .lbl)."""
     with MemoryStore.open(settings) as store:
-        summary = ingest_with_progress(store, folder.name,
-                                       labelled(folder.name, rgbd.read_samples(folder, robot)))
+        scenes = rgbd.read_samples(folder, robot, map_name)
+        summary = ingest_with_progress(store, folder.name, labelled(folder.name, scenes))
     echo_summary(str(folder), summary)
 
 
@@ -383,16 +411,54 @@ def _outcome(outcome: dict) -> str:
 @main.command()
 @click.pass_obj
 def reconsolidate(settings: Settings) -> None:
-    """Rebuild objects and events from the stored scenes, in time order (after a change of
-    the identity parameters): the same store always gives the same belief state."""
+    """Rebuild every map's objects and events from its stored scenes, in time order (after a
+    change of the identity parameters): the same code as the live pipeline, so the same store
+    always gives the same belief."""
     with MemoryStore.open(settings) as store:
-        total = store.scenes.estimated_document_count()
-        with progress_bar("reconsolidate") as bar:
-            task = bar.add_task("scenes", total=total)
-            count = Consolidator(store).rebuild(lambda: bar.advance(task))
+        maps = request_rebuild(store)
+        drain_with_progress(store, memory_pipeline(store, settings))
         objects = store.db["objects"].count_documents({})
         events = store.db["events"].count_documents({})
-    click.echo(f"reconsolidated {count} scenes: {objects} objects, {events} events")
+        scenes = store.scenes.estimated_document_count()
+    click.echo(f"reconsolidated {scenes} scenes in {len(maps)} {_plural(len(maps), 'map')}: "
+               f"{objects} objects, {events} events")
+
+
+@main.command(name="pipeline")
+@click.option("--retry", is_flag=True, help="queue the held scenes again")
+@click.option("--json", "as_json", is_flag=True, help="print the report as JSON")
+@click.pass_obj
+def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
+    """How far each map's belief is: the newest consolidated scene, the scenes pending and
+    held (a stage kept failing: their errors are listed), and who consolidates it."""
+    with MemoryStore.open(settings) as store:
+        if retry:
+            click.echo(f"{retry_held(store)} held scene(s) queued again", err=True)
+        report = pipeline_status(store)
+    if as_json:
+        click.echo(json.dumps(report, indent=2))
+        return
+    for row in report["maps"]:
+        until = row["consolidated_until"] or "-"
+        click.echo(f"{row['map']:<32} consolidated until {until:<30} pending {row['pending']:>6}"
+                   f"  held {row['held']:>4}{'  rebuilding' if row['rebuilding'] else ''}")
+    for held in report["held"]:
+        click.echo(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
+                   f"{held['attempts']} attempts: {held['error']}")
+
+
+@main.command()
+@click.pass_obj
+def consolidate(settings: Settings) -> None:
+    """Run the memory pipeline until SIGTERM or Ctrl-C: consolidate stored scenes into the
+    belief and queue their lookups. For deployments that run it apart from the web app
+    (PMEM_CONSOLIDATOR=false); as many as you like: each map has one writer at a time."""
+    with MemoryStore.open(settings) as store:
+        pipeline = memory_pipeline(store, settings)
+        for stopping in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(stopping, lambda *_: pipeline.stop_soon())
+        pipeline.run_forever()
+    click.echo("consolidator stopped", err=True)
 
 
 @main.command()

@@ -67,17 +67,24 @@ def kitchen_rgb() -> np.ndarray:
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
 
 
+def ingest_consolidated(store: MemoryStore, scenes) -> None:
+    """Ingest scenes as an importer does and wait for the pipeline to consolidate them."""
+    from percept_memory.ingest.service import IngestService
+
+    service = IngestService(store)
+    list(service.ingest_stream((str(i), scene) for i, scene in enumerate(scenes)))
+    service.pipeline.drain(timeout=600)
+    assert not service.pipeline.pending()
+
+
 @pytest.fixture(scope="module")
 def kitchen(store):
     """The generated kitchen week ingested with consolidation into the module's store, and the
     ground truth of every stored cluster: cluster id -> the catalogue object it shows."""
     from percept_memory.ingest import kitchen_week
-    from percept_memory.ingest.service import IngestService
-    from percept_memory.memory.consolidation import Consolidator
 
     week = kitchen_week.generate()
-    items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
-    list(IngestService(store, after_store=[Consolidator(store)]).ingest_stream(items))
+    ingest_consolidated(store, week.scenes)
     truth_of = {cluster.id: week.truth.object_at(i, j)
                 for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
     return week, truth_of

@@ -9,8 +9,9 @@ from pymongo import MongoClient
 
 from percept_memory.ingest import kitchen_week
 from percept_memory.ingest.service import IngestService
-from percept_memory.memory.consolidation import Consolidator
+from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.identity import Calibration
+from percept_memory.memory.pipeline import request_rebuild
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import (
     Cluster,
@@ -21,6 +22,8 @@ from percept_memory.memory.types import (
     SpatialVolume,
 )
 
+from .conftest import ingest_consolidated
+
 
 @pytest.fixture(scope="module")
 def week():
@@ -29,10 +32,15 @@ def week():
 
 @pytest.fixture(scope="module")
 def consolidated(store, week):
-    consolidator = Consolidator(store)
-    items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
-    list(IngestService(store, after_store=[consolidator]).ingest_stream(items))
-    return consolidator
+    ingest_consolidated(store, week.scenes)
+    return Consolidation(store)
+
+
+def consolidate_one_by_one(store, scenes) -> None:
+    """Each scene stored and consolidated before the next one comes (wait for the belief)."""
+    service = IngestService(store)
+    for scene in scenes:
+        service.ingest(scene, wait=30)
 
 
 def test_every_cluster_is_an_object_with_an_event(store, week, consolidated):
@@ -95,7 +103,6 @@ def test_out_of_view_is_hidden_and_a_place_seen_empty_is_disappeared(empty_store
     """One object on the table; the robot looks at another region (hidden), then at the table
     again without it (disappeared). Camera poses of the kitchen week: the frustum decides."""
     store = empty_store
-    consolidator = Consolidator(store)
     table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
     other = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
     mug = Cluster(annotations=[
@@ -105,9 +112,7 @@ def test_out_of_view_is_hidden_and_a_place_seen_empty_is_disappeared(empty_store
     scenes = [Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
                     camera=view.camera, clusters=clusters)
               for i, (view, clusters) in enumerate([(table, [mug]), (other, []), (table, [])])]
-    for scene in scenes:
-        store.put_scene(scene)
-        consolidator.consolidate(scene)
+    consolidate_one_by_one(store, scenes)
     mug_id = store.get_cluster(mug.id).object_id
     history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
     assert history == ["appear", "hidden", "disappear"]
@@ -118,7 +123,6 @@ def test_a_declared_view_region_decides_what_was_in_view(empty_store):
     """A scene without a camera may say what its sensor covered: objects believed inside it
     and not seen disappeared, those outside are hidden."""
     store = empty_store
-    consolidator = Consolidator(store)
 
     def thing(x: float, colour: str) -> Cluster:
         return Cluster(annotations=[Location(position=(x, 0.0, 0.8)),
@@ -132,18 +136,18 @@ def test_a_declared_view_region_decides_what_was_in_view(empty_store):
     scenes = [Scene(timestamp=base, robot="probe", clusters=[near, far],
                     view_region=looking_at(0.0, 3.0)),
               Scene(timestamp=base + 1, robot="probe", view_region=looking_at(0.0, 1.0))]
-    for scene in scenes:
-        store.put_scene(scene)
-        consolidator.consolidate(scene)
+    consolidate_one_by_one(store, scenes)
     state = {c.id: store.db.objects.find_one({"_id": store.get_cluster(c.id).object_id})["state"]
              for c in (near, far)}
     assert state == {near.id: "disappeared", far.id: "hidden"}
 
 
 def test_the_learnt_calibration_is_kept_with_the_belief(store, consolidated):
-    """A new consolidator (another process, a restart) goes on with what was learnt."""
-    assert Consolidator(store).calibration == consolidated.calibration
-    assert consolidated.calibration != Calibration.prior(consolidated.params)
+    """A new consolidator (another process, a restart) goes on with what its map learnt."""
+    learnt = consolidated.calibration(kitchen_week.MAP)
+    assert Consolidation(store).calibration(kitchen_week.MAP) == learnt
+    assert learnt != Calibration.prior(consolidated.params)
+    assert consolidated.calibration("another map") == Calibration.prior(consolidated.params)
 
 
 def test_reconsolidation_is_deterministic(store, consolidated):
@@ -153,16 +157,19 @@ def test_reconsolidation_is_deterministic(store, consolidated):
             groups.setdefault(doc["object_id"], set()).add(doc["_id"])
         return {frozenset(g) for g in groups.values()}
 
-    consolidated.rebuild()
+    def rebuild():
+        request_rebuild(store)
+        IngestService(store).pipeline.drain(timeout=600)
+
+    rebuild()
     first = partition()
-    consolidated.rebuild()
+    rebuild()
     assert partition() == first
     assert store.db.objects.count_documents({}) == len(first)
 
 
 def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, week):
     store = empty_store
-    consolidator = Consolidator(store)
     table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
     shelf = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
 
@@ -177,9 +184,7 @@ def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, w
                     camera=view.camera, clusters=clusters)
               for i, (view, clusters) in enumerate([(table, [first]), (table, []),
                                                     (shelf, [back])])]
-    for scene in scenes:
-        store.put_scene(scene)
-        consolidator.consolidate(scene)
+    consolidate_one_by_one(store, scenes)
     mug_id = store.get_cluster(first.id).object_id
     assert store.get_cluster(back.id).object_id == mug_id
     history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
@@ -189,6 +194,6 @@ def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, w
 
 def test_the_objects_a_view_may_contain_are_found_by_index(store, consolidated):
     """A scene's cost must not grow with the number of objects remembered elsewhere."""
-    plan = consolidated.objects_near(((0.0, 0.0), (3.5, 3.5))).explain()
+    plan = consolidated.objects_near(kitchen_week.MAP, ((0.0, 0.0), (3.5, 3.5))).explain()
     plan = plan["queryPlanner"]["winningPlan"]
-    assert "'indexName': 'xy_state'" in str(plan)
+    assert "'indexName': 'map_place'" in str(plan)

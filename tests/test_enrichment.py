@@ -36,7 +36,17 @@ from percept_memory.ingest.phash import crop_phash, hamming
 from percept_memory.ingest.service import IngestService
 from percept_memory.ingest.workers import run_worker
 from percept_memory.memory.async_store import AsyncMemoryStore
-from percept_memory.memory.schema import CLUSTERS, JOBS, LOOKUP_CACHE, SCENES
+from percept_memory.memory.schema import (
+    CALIBRATION,
+    CLUSTERS,
+    EVENTS,
+    JOBS,
+    LOOKUP_CACHE,
+    MAPS,
+    OBJECTS,
+    OUTBOX,
+    SCENES,
+)
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import (
@@ -62,7 +72,8 @@ DERIVED = {"text": Text, "logo": Logo, "product": Product, "barcode": Barcode}
 @pytest.fixture
 def fresh(store):
     """The module's store with no scenes, jobs or cached lookups left by other tests."""
-    for name in (SCENES, CLUSTERS, JOBS, LOOKUP_CACHE):
+    for name in (SCENES, CLUSTERS, JOBS, LOOKUP_CACHE, OUTBOX, MAPS, OBJECTS, EVENTS,
+                 CALIBRATION):
         store.db[name].delete_many({})
     return store
 
@@ -72,7 +83,7 @@ def settings_for(mongo_uri: str, db_name: str, **overrides) -> Settings:
 
 
 def ingest(store, scenes) -> None:
-    IngestService(store, after_store=[LookupEnqueuer(store)]).ingest_batch(scenes)
+    IngestService(store).ingest_batch(scenes, wait=60)
 
 
 async def until_idle(settings: Settings, **worker_options) -> Counter:
@@ -131,7 +142,7 @@ def test_ingest_enqueues_one_job_per_cluster_with_a_crop(fresh):
     clusters = sum(len(s.clusters) for s in scenes)
     assert fresh.db[JOBS].count_documents({"state": "queued", "kind": "lookup"}) == clusters
     ingest(fresh, scenes)  # stored before: nothing new to look up
-    LookupEnqueuer(fresh)(scenes)  # enqueueing again is harmless
+    LookupEnqueuer(fresh).apply([s.id for s in scenes], "", None)  # again: harmless
     assert fresh.db[JOBS].count_documents({}) == clusters
     no_crop = Scene(timestamp=5, robot="test",
                     clusters=[Cluster(hypotheses=[ImageROI(box=(0, 0, 4, 4))])])

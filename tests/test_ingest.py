@@ -142,14 +142,15 @@ def test_reingesting_returns_the_same_ids(store):
     assert not again.created and snapshot(store) == before
 
 
-def test_after_store_stages_see_only_new_scenes(store):
-    seen = []
-    service = IngestService(store, after_store=[lambda scenes: seen.append(
-        [s.timestamp for s in scenes])])
-    service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6),
-                          valid_scene(seed=7, timestamp=STAMP + 7)])
-    service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6)])
-    assert seen == [[STAMP + 6, STAMP + 7]]
+def test_only_new_scenes_enter_the_outbox_with_their_scene(store):
+    service = IngestService(store)
+    first = service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6),
+                                  valid_scene(seed=7, timestamp=STAMP + 7)])
+    again = service.ingest_batch([valid_scene(seed=6, timestamp=STAMP + 6)])
+    entries = list(store.outbox.find({"_id": {"$in": [r.scene_id for r in first]}}))
+    assert sorted(e["time"] for e in entries) == [STAMP + 6, STAMP + 7]
+    assert {e["map"] for e in entries} == {store.scenes.find_one({"_id": first[0].scene_id})["map"]}
+    assert not again[0].created and store.outbox.count_documents({"time": STAMP + 6}) == 1
 
 
 def test_scene_log_folder_round_trip(store, tmp_path, kitchen_rgb):
@@ -208,9 +209,7 @@ def test_validation_of_a_scene_object_passes_through():
 
 
 def test_a_stream_lands_every_valid_batch_before_an_invalid_one(store):
-    consolidated = []
-    service = IngestService(store, batch_size=2,
-                            after_store=[lambda scenes: consolidated.extend(scenes)])
+    service = IngestService(store, batch_size=2)
     items = [(f"item {i}", valid_scene(seed=40 + i, timestamp=STAMP + 400 + i)) for i in range(5)]
     items[4][1]["timestamp"] = "later"  # the third batch is invalid
     landed = []
@@ -219,7 +218,8 @@ def test_a_stream_lands_every_valid_batch_before_an_invalid_one(store):
             landed.append(ingested)
     assert store.scenes.count_documents(
         {"timestamp": {"$gte": STAMP + 400, "$lt": STAMP + 405}}) == 4
-    assert sorted(s.timestamp for s in consolidated) == [STAMP + 400 + i for i in range(4)]
+    queued = store.outbox.find({"time": {"$gte": STAMP + 400, "$lt": STAMP + 405}})
+    assert sorted(e["time"] for e in queued) == [STAMP + 400 + i for i in range(4)]
     assert len(landed) == 2  # the batch in flight landed but was not handed out
 
 

@@ -13,6 +13,7 @@ from rapidfuzz.distance import Levenshtein
 
 from percept_memory.converters import Unknown
 from percept_memory.ingest import kitchen_week as kw
+from percept_memory.ingest.service import IngestService
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
@@ -196,15 +197,12 @@ def test_an_object_out_of_view_is_hidden_there_until_its_place_is_seen_empty(emp
     week = kw.generate(days=1)
     table = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "table")
     shelf = next(s for s in week.scenes if s.clusters and s.clusters[0].region == "shelf")
-    from percept_memory.memory.consolidation import Consolidator
-    consolidator = Consolidator(store)
     mug = Cluster(annotations=[Location(region="table", position=table.clusters[0].position)])
     base = 4_000_000_000_000_000_000
+    service = IngestService(store)
     for i, (view, clusters) in enumerate([(table, [mug]), (shelf, []), (table, [])]):
-        scene = Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
-                      camera=view.camera, clusters=clusters)
-        store.put_scene(scene)
-        consolidator.consolidate(scene)
+        service.ingest(Scene(timestamp=base + i, robot="probe", camera_pose=view.camera_pose,
+                             camera=view.camera, clusters=clusters), wait=30)
     states = [[o.state for o in engine.what_is_at(region="table", t=base + i).objects]
               for i in range(-1, 3)]
     assert states == [[], ["present"], ["hidden"], []]

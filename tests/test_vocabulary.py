@@ -6,7 +6,6 @@ from __future__ import annotations
 import pytest
 
 from percept_memory.ingest.service import IngestService
-from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.schema import LABELS, TERMS
 from percept_memory.memory.types import Barcode, Classification, Cluster, Location, Product, Scene
 from percept_memory.queries.engine import QueryEngine
@@ -30,7 +29,7 @@ def engine(store):
         packet(0.0, "Corn Flakes 500g", CODE, "cereal"),
         packet(0.5, "Frosties", "5000127000125", "cereal box"),
     ]) for i in range(2)]
-    IngestService(store, after_store=[Consolidator(store)]).ingest_batch(scenes)
+    IngestService(store).ingest_batch(scenes, wait=60)
     return QueryEngine(store)
 
 

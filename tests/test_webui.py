@@ -28,8 +28,6 @@ from playwright.sync_api import Page, expect, sync_playwright
 
 from percept_memory.ingest import kitchen_week, synthetic
 from percept_memory.ingest.rgbd import read_samples
-from percept_memory.ingest.service import IngestService
-from percept_memory.memory.consolidation import Consolidator
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import (
     Classification,
@@ -50,7 +48,7 @@ from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
 
-from .conftest import ROBOSHERLOCK
+from .conftest import ROBOSHERLOCK, ingest_consolidated
 
 CHROMIUM = Path("/usr/bin/chromium")
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "test-output" / "screenshots"
@@ -91,9 +89,9 @@ def hostile():
 
 @pytest.fixture(scope="module")
 def filled(store, week, sample, hostile):
-    items = [(str(i), scene) for i, scene in enumerate(week.scenes)]
-    list(IngestService(store, after_store=[Consolidator(store)]).ingest_stream(items))
+    ingest_consolidated(store, week.scenes)
     store.put_scenes([sample, hostile])  # not consolidated: clusters without an object
+    store.outbox.delete_many({"_id": {"$in": [sample.id, hostile.id]}})
     store.db.jobs.insert_many(lookups(week))
     return store
 

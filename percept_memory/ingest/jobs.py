@@ -1,7 +1,8 @@
 """The durable enrichment queue: the `jobs` collection (DESIGN.md: Ingest and enrichment).
 
-Ingest enqueues one lookup job per new cluster that has a crop (`LookupEnqueuer`, an after-store
-stage of the ingest service: one insert_many per batch, so ingest never waits on a lookup).
+The memory pipeline enqueues one lookup job per stored cluster that has a crop (`LookupEnqueuer`,
+one of its stages, in the transaction that marks the stage done), so ingest never waits on a
+lookup and no cluster is looked up twice.
 Workers take jobs through `JobQueue`, on pymongo's AsyncMongoClient:
 
 - claim: one find_one_and_update of the job due first sets a lease: a fresh token, the worker's
@@ -30,51 +31,53 @@ from datetime import UTC, datetime, timedelta
 from typing import Any, Literal
 
 from bson import ObjectId
-from pymongo import ReturnDocument
-from pymongo.errors import BulkWriteError
+from pymongo import ReturnDocument, UpdateOne
 
+from percept_memory.converters import name_of
 from percept_memory.memory.schema import JOBS
 from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import ImageROI, Scene
+from percept_memory.memory.types import ImageROI
 
 LOOKUP = "lookup"
 State = Literal["queued", "running", "done", "failed"]
 STATES: tuple[State, ...] = ("queued", "running", "done", "failed")
 MAX_BACKOFF_S = 600.0
-DUPLICATE_KEY = 11000
 
 
 def utc_now() -> datetime:
     return datetime.now(UTC)
 
 
-def lookup_jobs(scenes: Sequence[Scene], at: datetime) -> list[dict]:
-    """The job documents for the stored scenes' clusters that have a crop to look up."""
-    return [
-        {"kind": LOOKUP, "cluster_id": cluster.id, "scene_id": scene.id, "state": "queued",
-         "attempts": 0, "due": at, "created": at, "updated": at}
-        for scene in scenes for cluster in scene.clusters
-        if (roi := cluster.hypothesis_of(ImageROI)) is not None and roi.crop is not None
-    ]
+# the clusters of some scenes that have a crop to look up
+def _with_crop(scene_ids: Sequence[ObjectId]) -> dict:
+    return {"scene_id": {"$in": list(scene_ids)}, "hypotheses": {"$elemMatch": {
+        "_type": name_of(ImageROI), "crop": {"$ne": None}}}}
 
 
 class LookupEnqueuer:
-    """After-store stage of the ingest service: a lookup job for every new cluster with a crop,
-    in one insert_many per batch. A cluster has one lookup job, ever (unique index), so
-    enqueueing again is harmless."""
+    """A stage of the memory pipeline (memory/pipeline.py): a lookup job for every cluster
+    with a crop of the scenes it is given. Upserts, one per cluster (a cluster has one lookup
+    job, ever: unique index), so a job is never queued twice."""
+
+    name = "lookups"
+    belief = False  # a rebuilt map needs no lookup again
 
     def __init__(self, store: MemoryStore):
+        self.store = store
         self.jobs = store.db[JOBS]
 
-    def __call__(self, scenes: Sequence[Scene]) -> None:
-        jobs = lookup_jobs(scenes, utc_now())
-        if not jobs:
-            return
-        try:
-            self.jobs.insert_many(jobs, ordered=False)
-        except BulkWriteError as error:
-            if any(e["code"] != DUPLICATE_KEY for e in error.details["writeErrors"]):
-                raise
+    def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
+        at = utc_now()
+        clusters = self.store.clusters.find(_with_crop(scene_ids), {"scene_id": 1},
+                                            session=session)
+        upserts = [UpdateOne({"kind": LOOKUP, "cluster_id": c["_id"]}, {"$setOnInsert": {
+            "scene_id": c["scene_id"], "state": "queued", "attempts": 0, "due": at,
+            "created": at, "updated": at}}, upsert=True) for c in clusters]
+        if upserts:
+            self.jobs.bulk_write(upserts, ordered=False, session=session)
+
+    def reset(self, map_name: str) -> None:
+        """Nothing to forget: lookups are no part of a map's belief."""
 
 
 @dataclass

@@ -54,6 +54,7 @@ from percept_memory.memory.types import (
 START = datetime(2024, 3, 4, tzinfo=UTC)
 """Monday 00:00 UTC of the first day. Clock times in the schedule are UTC ("8 am" is 08:00)."""
 ROBOT = "pr2"
+MAP = "kitchen-week"  # a kitchen of its own: never one object with the real data's
 CROP = 64
 CAMERA_HEIGHT = 1.55
 SECOND = 1_000_000_000
@@ -952,7 +953,7 @@ def _scene(stamp: int, region: str, placed: list[tuple[str, Vec3, Face]],
         if not counts["text"] and (item.front if face == "front" else item.back):
             log.append(LogLine(source="OCRAnnotator", level="warning",
                                message=f"cluster {i}: no text found"))
-    scene = Scene(timestamp=stamp, robot=ROBOT, camera_pose=pose, camera=KINECT,
+    scene = Scene(timestamp=stamp, robot=ROBOT, map=MAP, camera_pose=pose, camera=KINECT,
                   clusters=clusters, log=log)
     return scene, placed
 

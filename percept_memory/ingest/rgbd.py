@@ -44,7 +44,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.transform import Rotation
 
-from percept_memory.ingest.service import SourceError
+from percept_memory.ingest.service import SourceError, in_map
 from percept_memory.ingest.synthetic import KINECT
 from percept_memory.memory.types import (
     Cluster,
@@ -98,11 +98,16 @@ class SampleError(SourceError):
         self.path = path
 
 
-def read_samples(folder: Path, robot: str = "pr2") -> Iterator[Scene]:
+def read_samples(folder: Path, robot: str = "pr2", map_name: str | None = None
+                 ) -> Iterator[Scene]:
     """The scenes of every sample under `folder`: layout (a) by stamp, then layout (b) by
     name. A sample is found by its `rgb_<stamp>.png` or `cloud<n>.pcd`; a missing partner file
-    is an error."""
+    is an error. They are one map: `map_name`, default `rgbd/<folder name>`."""
     folder = Path(folder)
+    return in_map(_samples(folder, robot), map_name or f"rgbd/{folder.name}")
+
+
+def _samples(folder: Path, robot: str) -> Iterator[Scene]:
     for rgb in sorted(folder.rglob("rgb_*.png")):
         if match := re.fullmatch(r"rgb_(\d+)\.png", rgb.name):
             yield _depth_scene(rgb, match.group(1), robot)

@@ -62,7 +62,7 @@ from pydantic import ValidationError
 from pymongo import MongoClient
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
-from percept_memory.ingest.service import SourceError
+from percept_memory.ingest.service import SourceError, in_map
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,
@@ -114,8 +114,10 @@ class RoboSherlockFormatError(SourceError):
 # --- ways in ------------------------------------------------------------------------------
 
 
-def read_dump(folder: Path, robot: str = "pr2") -> Iterator[Scene]:
-    """The frames of a `mongodump` folder of RoboSherlock's storage, oldest first."""
+def read_dump(folder: Path, robot: str = "pr2", map_name: str | None = None
+              ) -> Iterator[Scene]:
+    """The frames of a `mongodump` folder of RoboSherlock's storage, oldest first, in one map
+    (`map_name`, default `robosherlock/<folder name>`)."""
     folder = Path(folder)
     if not (folder / f"{CAS}.bson").is_file():
         raise SourceError(
@@ -126,15 +128,18 @@ def read_dump(folder: Path, robot: str = "pr2") -> Iterator[Scene]:
         for path in sorted(folder.glob("*.bson"))
         if not path.name.startswith("system.")
     }
-    return read_collections(collections, robot)
+    return in_map(read_collections(collections, robot), map_name or f"robosherlock/{folder.name}")
 
 
-def read_database(uri: str, db: str, robot: str = "pr2") -> Iterator[Scene]:
-    """The frames of a live RoboSherlock database, oldest first."""
+def read_database(uri: str, db: str, robot: str = "pr2", map_name: str | None = None
+                  ) -> Iterator[Scene]:
+    """The frames of a live RoboSherlock database, oldest first, in one map (`map_name`,
+    default `robosherlock/<db>`)."""
     with MongoClient(uri) as client:
         database = client[db]
         names = [n for n in database.list_collection_names() if not n.startswith("system.")]
-        yield from read_collections({name: database[name].find() for name in names}, robot)
+        yield from in_map(read_collections({name: database[name].find() for name in names},
+                                           robot), map_name or f"robosherlock/{db}")
 
 
 def read_collections(

@@ -1,17 +1,18 @@
-"""The one way in: validate -> store -> after-store stages -> ids.
+"""The one way in: validate -> store (with the outbox) -> ids.
 
 HTTP, the CLI and every importer hand scenes to `IngestService`. A batch is validated whole
 before anything is written, so bad input never leaves half a batch behind; the valid batch is
-stored in one transaction. Scenes stored before (same robot, same timestamp) are not written
-again and keep their ids. After storing, the new scenes go through the after-store stages in
-order: identity consolidation, then enqueueing enrichment jobs, as those parts of the memory
-register theirs. Ingest never waits on a web lookup.
+stored in one transaction, each new scene with its outbox entry: the after-store stages
+(identity consolidation, enqueueing lookups) then run from the outbox in the memory pipeline
+(memory/pipeline.py), exactly once, in time order per map. Ingest answers once the scenes are
+durably stored; a caller that needs the belief updated first waits for it (`wait`). Scenes
+stored before (same robot, same timestamp) are not written again and keep their ids.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import islice
@@ -19,12 +20,13 @@ from typing import Any, NamedTuple
 
 from pydantic import ValidationError
 
+from percept_memory.ingest.jobs import LookupEnqueuer
+from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
+from percept_memory.memory.pipeline import Pipeline
+from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
-
-AfterStore = Callable[[Sequence[Scene]], None]
-"""A stage run on the scenes a batch newly stored (e.g. identity consolidation)."""
 
 DEFAULT_BATCH = 32
 UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a field's path
@@ -73,31 +75,38 @@ def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 
 class IngestService:
     """Brings scenes into a MemoryStore."""
 
-    def __init__(
-        self,
-        store: MemoryStore,
-        *,
-        after_store: Sequence[AfterStore] = (),
-        batch_size: int = DEFAULT_BATCH,
-    ):
+    def __init__(self, store: MemoryStore, *, pipeline: Pipeline | None = None,
+                 batch_size: int = DEFAULT_BATCH):
         self.store = store
-        self.after_store = list(after_store)
+        self.pipeline = pipeline or memory_pipeline(store)
         self.batch_size = batch_size
 
-    def ingest(self, data: Scene | Mapping, context: Mapping | None = None) -> SceneIds:
-        """Validate and store one scene."""
-        return self.ingest_batch([data], context)[0]
+    def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
+               wait: float | None = None) -> SceneIds:
+        """Validate and store one scene (see ingest_batch)."""
+        return self.ingest_batch([data], context, wait=wait)[0]
 
     def ingest_batch(
         self,
         items: Sequence[Scene | Mapping],
         context: Mapping | None = None,
         labels: Sequence[str] | None = None,
+        wait: float | None = None,
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
-        any item is invalid (the IngestError names every problem, by label or index)."""
+        any item is invalid (the IngestError names every problem, by label or index). With
+        `wait` (seconds), also wait until the new scenes went through the pipeline (their
+        belief is current), at most that long: `settled` tells whether they did."""
         scenes = self._validated(items, context, labels)
-        return self._stored(scenes, self.store.put_scenes(scenes))
+        results = self._stored(self.store.put_scenes(scenes))
+        if wait is not None:
+            self.settled(results, wait)
+        return results
+
+    def settled(self, results: Sequence[SceneIds], timeout: float) -> bool:
+        """Wait until the new ones of these scenes went through the pipeline (True), at most
+        `timeout` seconds (False)."""
+        return self.pipeline.wait([r.scene_id for r in results if r.created], timeout)
 
     def ingest_stream(
         self, items: Iterable[tuple[str, Scene | Mapping]], context: Mapping | None = None
@@ -121,12 +130,12 @@ class IngestService:
                         yield from self._landed(*previous)
                     pending = (scenes, writer.submit(self.store.commit_scenes, prepared))
             finally:
-                if pending is not None:  # lands (and is consolidated) even if a later batch
-                    landed = self._landed(*pending)  # was invalid or the caller stopped
+                if pending is not None:  # lands even if a later batch was invalid or the
+                    landed = self._landed(*pending)  # caller stopped
         yield from landed
 
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
-        return list(map(Ingested, scenes, self._stored(scenes, write.result())))
+        return list(map(Ingested, scenes, self._stored(write.result())))
 
     @staticmethod
     def _validated(items, context, labels) -> list[Scene]:
@@ -140,13 +149,24 @@ class IngestService:
             raise IngestError(problems)
         return scenes
 
-    def _stored(self, scenes: list[Scene], results: list[SceneIds]) -> list[SceneIds]:
-        """Run the after-store stages on the scenes that are new, then hand the ids back."""
-        created = [scene for scene, ids in zip(scenes, results, strict=True) if ids.created]
-        if created:
-            for stage in self.after_store:
-                stage(created)
+    def _stored(self, results: list[SceneIds]) -> list[SceneIds]:
+        """Tell the pipeline there is work (when new scenes were stored); hand the ids back."""
+        if any(r.created for r in results):
+            self.pipeline.wake()
         return results
+
+
+def memory_pipeline(store: MemoryStore, settings: Settings | None = None) -> Pipeline:
+    """The memory pipeline with its stages: identity consolidation, then lookup jobs."""
+    lease_s = (settings or Settings()).map_lease_s
+    return Pipeline(store, [Consolidation(store), LookupEnqueuer(store)], lease_s=lease_s)
+
+
+def in_map(scenes: Iterable[Scene], name: str) -> Iterator[Scene]:
+    """The scenes, each placed in the named map (an importer's site: a dump, a folder)."""
+    for scene in scenes:
+        scene.map = name
+        yield scene
 
 
 class Ingested(NamedTuple):

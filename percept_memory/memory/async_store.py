@@ -25,6 +25,7 @@ from .errors import (
     require_replica_set,
     unreachable,
 )
+from .naming import renamed
 from .schema import COUNTED_COLLECTIONS, INDEXES, RETIRED_INDEXES, catalogue_entry
 from .settings import Settings
 from .store import CLIENT_OPTIONS, HALVE, ClusterChange, StoreBase, halves, vocabulary_upserts
@@ -155,7 +156,9 @@ class AsyncMemoryStore(StoreBase):
             doc = await self.clusters.find_one({"_id": cluster_id}, session=session)
             if doc is None:
                 raise NotFound("cluster", cluster_id)
-            changed = change(docs.decode_cluster(doc, await self._blobs([doc], session)))
+            stored = docs.decode_cluster(doc, await self._blobs([doc], session))
+            before = list(stored.annotations)
+            changed = change(stored)
             if changed is None:
                 return docs.Documents()
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
@@ -163,6 +166,8 @@ class AsyncMemoryStore(StoreBase):
             await self.clusters.replace_one(
                 {"_id": cluster_id}, written.clusters[0], session=session
             )
+            if doc.get("object_id") is not None:
+                await self._rename(doc["object_id"], before, changed.annotations, session)
             summary = docs.summary_change(doc, written.clusters[0])
             if summary == docs.RECOUNT:
                 await self._summarise(doc["scene_id"], session)
@@ -171,6 +176,15 @@ class AsyncMemoryStore(StoreBase):
             return written
 
         await self._catalogue(await self._transaction(work))
+
+    async def _rename(self, object_id, before, after, session) -> None:
+        """Keep the names of the object an observation is believed to be in step with the
+        annotations appended to it (naming.py)."""
+        believed = await self.objects.find_one({"_id": object_id}, {"label_weights": 1},
+                                            session=session)
+        update = renamed(believed, before, after) if believed else None
+        if update:
+            await self.objects.update_one({"_id": object_id}, update, session=session)
 
     async def _summarise(self, scene_id: ObjectId, session) -> None:
         """See MemoryStore._summarise."""
@@ -214,6 +228,7 @@ class AsyncMemoryStore(StoreBase):
         await self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             await self.clusters.insert_many(written.clusters, session=session)
+        await self.outbox.insert_many(written.outbox, session=session)
 
     async def _transaction(self, work):
         async with self.client.start_session() as session:

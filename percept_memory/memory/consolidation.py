@@ -1,31 +1,33 @@
-"""Keeps the belief state current: after each stored scene, which object each cluster is and
-what became of the objects not seen (thesis 3.2.5 and 6.2; the decision is identity.resolve).
+"""Keeps each map's belief current: for every stored scene, in time order, which object each
+cluster is and what became of the objects not seen (thesis 3.2.5 and 6.2; the decision is
+identity.resolve). A stage of the memory pipeline (pipeline.py), so it runs exactly once per
+scene, live and in a rebuild alike.
 
-`objects` holds one document per physical object believed to exist:
-    {_id, name, names, label_weights, state: present | hidden | disappeared, first_seen,
-     last_seen (ns), last_scene, last_cluster, position, region, robot, observations}
+`objects` holds one document per physical object believed to exist, in one map:
+    {_id, map, name, names, label_weights, state: present | hidden | disappeared, first_seen,
+     last_seen (ns), last_scene, last_cluster, position, x, y, region, robot, observations}
 `events` holds one document per object per scene that concerned it:
-    {_id, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move, newview,
-     appear, hidden, disappear), probability, alternatives [{object_id, explanation,
+    {_id, map, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move,
+     newview, appear, hidden, disappear), probability, alternatives [{object_id, explanation,
      probability}], position, region}
-`calibration` holds what the identity model learnt about how alike and how near two
-observations of one object are (identity.Calibration), kept with the belief it shaped.
-Names come from the words annotators gave the object, weighted by how much each annotation
-type names rather than describes it (thesis 5.4.5: word statistics), so "the ketchup" finds
-the object a Heinz logo and a "ketchup" classification were seen on.
+`calibration` holds, per map, what the identity model learnt about how alike and how near
+two observations of one object are (identity.Calibration), kept with the belief it shaped.
+
+Identity decides on the evidence a cluster arrived with (documents.ARRIVED_KEY): annotations
+appended later by enrichment name the object (naming.py) but never change a past decision, so
+a rebuild decides exactly as the live pipeline did. Names come from naming.py.
 """
 
 from __future__ import annotations
 
-from collections import Counter, OrderedDict
+from collections import OrderedDict
 from collections.abc import Sequence
 
 from bson import ObjectId
 from pymongo import UpdateOne
 from pymongo.cursor import Cursor
 
-from percept_memory.converters import escape_key, unescape_key
-
+from . import documents as docs
 from .identity import (
     Calibration,
     Decision,
@@ -35,20 +37,28 @@ from .identity import (
     Parameters,
     resolve,
 )
+from .naming import naming_fields, naming_labels, stored_weights
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
-from .types import Annotation, Cluster, Scene
+from .types import Cluster, Scene
 from .view import View
 
-NAMES_KEPT = 3
 MAX_UNSEEN_CANDIDATES = 32
 DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
+# what identity reads of stored scenes and clusters: no pixels, clouds or logs
+SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
+                  "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
+CLUSTER_EVIDENCE = {"hypotheses.crop": 0, "hypotheses.mask": 0, "hypotheses.cloud": 0,
+                    docs.SEARCH_KEY: 0}
 
 
-class Consolidator:
-    """An after-store stage of the ingest service: consolidates every new scene, in time order."""
+class Consolidation:
+    """The pipeline stage that decides who is who in each scene of a map, in time order."""
+
+    name = "consolidate"
+    belief = True
 
     def __init__(self, store: MemoryStore, params: Parameters | None = None,
                  max_unseen_candidates: int = MAX_UNSEEN_CANDIDATES):
@@ -59,24 +69,39 @@ class Consolidator:
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
-        stored = self.calibrations.find_one({"_id": CALIBRATION})
-        self.calibration = (Calibration.from_document(stored["cues"]) if stored
-                            else Calibration.prior(self.params))
 
-    def __call__(self, scenes: Sequence[Scene]) -> None:
-        for scene in sorted(scenes, key=lambda s: s.timestamp):
-            self.consolidate(scene)
+    def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
+        calibration = self.calibration(map_name, session)
+        for scene, arrived in self._scenes(scene_ids, session):
+            self.consolidate(scene, arrived, calibration, session)
+        self.calibrations.replace_one({"_id": map_name}, {"cues": calibration.to_document()},
+                                      upsert=True, session=session)
 
-    def consolidate(self, scene: Scene) -> list[Decision]:
-        """Decide who is who in one stored scene and record it."""
-        believed = self._candidates(scene)
-        last = self._observations([o["last_cluster"] for o, _ in believed])
+    def reset(self, map_name: str) -> None:
+        """Forget the map's objects, their events and what its calibration learnt."""
+        ids = self.objects.distinct("_id", {"map": map_name})
+        for start in range(0, len(ids), 10_000):
+            self.events.delete_many({"object_id": {"$in": ids[start:start + 10_000]}})
+        self.objects.delete_many({"map": map_name})
+        self.calibrations.delete_one({"_id": map_name})
+
+    def calibration(self, map_name: str, session=None) -> Calibration:
+        """What the map's identity model has learnt so far (the prior before its first scene)."""
+        stored = self.calibrations.find_one({"_id": map_name}, session=session)
+        return (Calibration.from_document(stored["cues"]) if stored
+                else Calibration.prior(self.params))
+
+    def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
+                    session) -> list[Decision]:
+        """Decide who is who in one stored scene and record it. `arrived`: cluster id -> how
+        many of its annotations came with the scene (the evidence to decide on)."""
+        believed = self._candidates(scene, session)
+        last = self._observations([o["last_cluster"] for o, _ in believed], session)
         known = [Known(o["_id"], last[o["last_cluster"]], seen)
                  for o, seen in believed if o["last_cluster"] in last]
-        believed = [o for o, _ in believed]
-        new = [_observation(cluster) for cluster in scene.clusters]
-        decisions = resolve(new, known, self.params, self.calibration)
-        by_id = {o["_id"]: o for o in believed}
+        new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
+        decisions = resolve(new, known, self.params, calibration)
+        by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in scene.clusters}
         objects, events, links = [], [], []
         for decision in decisions:
@@ -90,83 +115,84 @@ class Consolidator:
             objects.append(_object_update(object_id, decision, scene, cluster, previous))
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
-                cluster.object_id = object_id
-
-        def work(session):
-            if objects:
-                self.objects.bulk_write(objects, session=session)
-                self.events.insert_many(events, session=session)
-            if links:
-                self.store.clusters.bulk_write(links, session=session)
-            self.calibrations.replace_one(
-                {"_id": CALIBRATION}, {"cues": self.calibration.to_document()}, upsert=True,
-                session=session)
-
-        self.store._transaction(work)
+        if objects:
+            self.objects.bulk_write(objects, session=session)
+            self.events.insert_many(events, session=session)
+        if links:
+            self.store.clusters.bulk_write(links, session=session)
         return decisions
 
-    def _observations(self, cluster_ids: list) -> dict:
-        """The evidence of stored clusters, decoded once: an observation does not change under
-        its id (an annotation appended later is seen when its object is next observed)."""
+    def _scenes(self, scene_ids: Sequence[ObjectId], session):
+        """The scenes with what identity needs of them (no pixels), in the given order, and
+        per cluster how many annotations it arrived with."""
+        scene_docs = {doc["_id"]: doc for doc in self.store.scenes.find(
+            {"_id": {"$in": list(scene_ids)}}, SCENE_EVIDENCE, session=session)}
+        cluster_ids = [c for doc in scene_docs.values() for c in doc["clusters"]]
+        cluster_docs = list(self.store.clusters.find({"_id": {"$in": cluster_ids}},
+                                                     CLUSTER_EVIDENCE, session=session))
+        blobs = self.store._blobs(cluster_docs, session)
+        arrived = {doc["_id"]: docs.arrived(doc) for doc in cluster_docs}
+        for scene_id in scene_ids:
+            if scene_id in scene_docs:  # (a scene deleted by hand has nothing to consolidate)
+                yield docs.decode_scene(scene_docs[scene_id], cluster_docs, blobs), arrived
+
+    def _observations(self, cluster_ids: list, session) -> dict:
+        """The evidence of stored clusters, decoded once: what a cluster arrived with never
+        changes under its id."""
         missing = [c for c in cluster_ids if c not in self._decoded]
-        for cluster_id, cluster in self.store.get_clusters(missing).items():
-            self._decoded[cluster_id] = _observation(cluster)
+        if missing:
+            found = list(self.store.clusters.find({"_id": {"$in": missing}}, CLUSTER_EVIDENCE,
+                                                  session=session))
+            blobs = self.store._blobs(found, session)
+            for doc in found:
+                self._decoded[doc["_id"]] = _observation(docs.decode_cluster(doc, blobs),
+                                                         docs.arrived(doc))
         while len(self._decoded) > DECODED_KEPT:
             self._decoded.popitem(last=False)
         return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
 
-    def _candidates(self, scene: Scene) -> list[tuple[dict, bool]]:
-        """The objects this scene's clusters may be, with whether their place is in view: all
-        believed present or hidden whose place is in view, and the most recently seen of the
-        others, disappeared ones included (they may have been moved or brought back here).
-        Older unseen objects still persist; they are just not matched now, which keeps a
-        scene's cost independent of how many objects the memory holds."""
+    def _candidates(self, scene: Scene, session) -> list[tuple[dict, bool]]:
+        """The objects of the scene's map its clusters may be, with whether their place is in
+        view: all believed present or hidden whose place is in view, and the most recently
+        seen of the others, disappeared ones included (they may have been moved or brought
+        back here). Older unseen objects still persist; they are just not matched now, which
+        keeps a scene's cost independent of how many objects the memory holds."""
         in_sight = []
         view = View(scene)
         bounds = view.bounds()
         if bounds is not None:
-            for doc in self.objects_near(bounds):
+            for doc in self.objects_near(scene.map, bounds, session):
                 if view.sees(_vec(doc.get("position"))):
                     in_sight.append((doc, True))
-        seen = {doc["_id"] for doc, _ in in_sight}
-        recent = self.objects.find({"_id": {"$nin": list(seen)}}).sort("last_seen", -1)
+        seen = [doc["_id"] for doc, _ in in_sight]
+        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}},
+                                   session=session).sort("last_seen", -1)
         unseen = [(doc, False) for doc in recent.limit(self.max_unseen_candidates)]
         return in_sight + unseen
 
-    def objects_near(self, bounds) -> Cursor:
-        """The objects believed present or hidden whose x, y lie in a box ((x0, y0), (x1, y1)),
-        by the index on their place."""
-        query = {"state": {"$ne": "disappeared"}, "xy": {"$geoWithin": {"$box": bounds}}}
-        return self.objects.find(query).hint("xy_state")
-
-    def rebuild(self, progress=None) -> int:
-        """Forget the belief state and consolidate every stored scene again in time order
-        (after a parameter change): deterministic for the same store and parameters."""
-        self.objects.delete_many({})
-        self.events.delete_many({})
-        self.calibrations.delete_many({})
-        self.calibration = Calibration.prior(self.params)
-        self.store.clusters.update_many({}, {"$set": {"object_id": None}})
-        count = 0
-        for doc in self.store.scenes.find({}, {"_id": 1}).sort([("timestamp", 1), ("_id", 1)]):
-            self.consolidate(self.store.get_scene(doc["_id"]))
-            count += 1
-            if progress:
-                progress()
-        return count
+    def objects_near(self, map_name: str, bounds, session=None) -> Cursor:
+        """The objects of a map believed present or hidden whose x, y lie in a box
+        ((x0, y0), (x1, y1)), by the index on their place."""
+        (x0, y0), (x1, y1) = bounds
+        query = {"map": map_name, "x": {"$gte": x0, "$lte": x1}, "y": {"$gte": y0, "$lte": y1},
+                 "state": {"$ne": "disappeared"}}
+        return self.objects.find(query, session=session).hint("map_place")
 
 
 def _vec(value) -> tuple | None:
     return tuple(value) if value is not None else None
 
 
-def _observation(cluster: Cluster) -> Observation:
-    return Observation(cluster.id, cluster.position, [*cluster.annotations, *cluster.hypotheses])
+def _observation(cluster: Cluster, arrived: int) -> Observation:
+    """What identity compares: the cluster's place and the evidence it arrived with."""
+    return Observation(cluster.id, cluster.position,
+                       [*cluster.annotations[:arrived], *cluster.hypotheses])
 
 
 def _event(decision: Decision, object_id, scene: Scene, cluster: Cluster | None,
            previous: dict) -> dict:
     return {
+        "map": scene.map,
         "object_id": object_id,
         "scene_id": scene.id,
         "cluster_id": cluster.id if cluster else None,
@@ -189,33 +215,21 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
                    previous: dict) -> UpdateOne:
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
-    weights = Counter({unescape_key(k): v for k, v in previous.get("label_weights", {}).items()})
-    weights.update(naming_labels(cluster))
-    names = [name for name, _ in weights.most_common(NAMES_KEPT)]
+    weights = stored_weights(previous)
+    weights.update(naming_labels(cluster.annotations))
+    position = list(cluster.position) if cluster.position else None
     return UpdateOne(
         {"_id": object_id},
         {
             "$set": {
-                "state": "present", "last_seen": scene.timestamp, "last_scene": scene.id,
-                "last_cluster": cluster.id, "robot": scene.robot,
-                "position": list(cluster.position) if cluster.position else None,
-                "xy": list(cluster.position[:2]) if cluster.position else None,
-                "region": cluster.region, "names": names, "name": names[0] if names else None,
-                "label_weights": {escape_key(k): v for k, v in weights.items()},
+                "map": scene.map, "state": "present", "last_seen": scene.timestamp,
+                "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
+                "position": position, "x": position[0] if position else None,
+                "y": position[1] if position else None, "region": cluster.region,
+                **naming_fields(weights),
             },
             "$setOnInsert": {"first_seen": scene.timestamp},
             "$inc": {"observations": 1},
         },
         upsert=True,
     )
-
-
-def naming_labels(cluster: Cluster) -> Counter:
-    """The words a cluster's annotations name its object by, with their weights."""
-    found: Counter = Counter()
-    for annotation in cluster.annotations:
-        if isinstance(annotation, Annotation) and annotation.naming_weight:
-            for label in annotation.labels():
-                if label:
-                    found[label.strip().casefold()] += annotation.naming_weight
-    return found

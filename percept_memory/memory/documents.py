@@ -27,7 +27,10 @@ from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 SEARCH_KEY = "search"  # derived query fields, recomputed on every write
 BLOBS_KEY = "_blobs"  # ids of the GridFS blobs a document refers to
 SUMMARY_KEY = "summary"  # small inline summary of a scene, for list pages
-DERIVED_KEYS = (SEARCH_KEY, BLOBS_KEY, SUMMARY_KEY, "time")
+# how many of a cluster's annotations came with its scene: the evidence identity decides on,
+# the same live and in a rebuild, whatever enrichment appended since (memory/pipeline.py)
+ARRIVED_KEY = "arrived"
+DERIVED_KEYS = (SEARCH_KEY, BLOBS_KEY, SUMMARY_KEY, ARRIVED_KEY, "time")
 
 
 @dataclass
@@ -51,6 +54,7 @@ class Documents:
     type_names: set[str] = field(default_factory=set)
     terms: set[str] = field(default_factory=set)  # the vocabulary: words to spell-correct to
     labels: set[str] = field(default_factory=set)  # and labels to find by their words
+    outbox: list[dict] = field(default_factory=list)  # the stages each new scene awaits
 
     def encode(self, value: Scene | Cluster, threshold: int) -> dict:
         """The document of one object. Each document lists the blobs it refers to itself,
@@ -140,7 +144,15 @@ def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
         doc[SUMMARY_KEY] = scene_summary(doc, clusters)
         out.scenes.append(as_bson(doc))
         out.clusters.extend(map(as_bson, clusters))
+        out.outbox.append(outbox_entry(scene.id, scene.map, scene.timestamp))
     return out
+
+
+def outbox_entry(scene_id: ObjectId, map_name: str, timestamp: int, done=()) -> dict:
+    """A scene's entry in the pipeline's outbox, written in the scene's own transaction: the
+    after-store stages it still awaits (all but `done`), taken in time order per map."""
+    return {"_id": scene_id, "map": map_name, "time": timestamp, "done": list(done),
+            "attempts": 0, "held": False, "due": None, "error": None}
 
 
 SUMMARY_PROJECTION = {"log.source": 1, "annotations.source": 1, "annotations._type": 1,
@@ -192,8 +204,16 @@ def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Docu
     """The new document of a stored cluster, keeping its scene's time and robot."""
     out = Documents()
     search = stored[SEARCH_KEY]
-    out.clusters.append(_cluster_document(cluster, search["time"], search["robot"], threshold, out))
+    doc = _cluster_document(cluster, search["time"], search["robot"], threshold, out)
+    doc[ARRIVED_KEY] = arrived(stored)
+    out.clusters.append(doc)
     return out
+
+
+def arrived(cluster_doc: Mapping) -> int:
+    """How many of the cluster's annotations came with its scene (all, for data stored before
+    this was recorded)."""
+    return cluster_doc.get(ARRIVED_KEY, len(cluster_doc.get("annotations", ())))
 
 
 def as_bson(doc: dict) -> RawBSONDocument:
@@ -205,6 +225,7 @@ def _cluster_document(
     cluster: Cluster, timestamp: int, robot: str, threshold: int, out: Documents
 ) -> dict:
     doc = out.encode(cluster, threshold)
+    doc[ARRIVED_KEY] = len(cluster.annotations)
     doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot)
     search["fields"] = search_keys.field_entries(doc.get("annotations", ()))
     out.terms.update(filter(search_keys.misspellable, search["terms"]))

@@ -6,7 +6,7 @@ import types
 import typing
 from typing import Any
 
-from pymongo import ASCENDING, DESCENDING, GEO2D, IndexModel
+from pymongo import ASCENDING, DESCENDING, IndexModel
 
 from percept_memory.converters import aliases_of, class_for, foreign_codec_names, name_of
 
@@ -14,7 +14,9 @@ SCENES = "scenes"
 CLUSTERS = "clusters"
 OBJECTS = "objects"
 EVENTS = "events"
-CALIBRATION = "calibration"  # what identity resolution learnt about the sensors
+CALIBRATION = "calibration"  # what identity resolution learnt about the sensors, per map
+OUTBOX = "outbox"  # per stored scene, the after-store stages it awaits (memory/pipeline.py)
+MAPS = "maps"  # per map: how far its belief is, and the lease of its one writer
 JOBS = "jobs"
 LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"
@@ -22,8 +24,6 @@ TERMS = "terms"  # the words clusters use, digits aside, with their trigrams (fo
 LABELS = "labels"  # labels of several words, by their words (objects by any word of a name)
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
-
-PLACE_LIMIT_M = 100_000.0  # the extent of a map: positions within +-100 km of its origin
 
 
 def _newest(*keys: str, name: str, then: tuple[str, ...] = ()) -> IndexModel:
@@ -40,6 +40,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         # the scene log (webui/scene_log.py): newest first, (timestamp, _id) as its cursor,
         # unfiltered or filtered by any one of these fields
         IndexModel([("timestamp", DESCENDING), ("_id", DESCENDING)], name="newest"),
+        # a map's scenes in time order: its belief rebuilt (memory/pipeline.py), its span
+        IndexModel([("map", ASCENDING), ("timestamp", ASCENDING), ("_id", ASCENDING)],
+                   name="map_time"),
         *(IndexModel([(key, ASCENDING), ("timestamp", DESCENDING), ("_id", DESCENDING)],
                      name=f"{key.rpartition('.')[2]}_newest")
           for key in ("robot", "summary.regions", "summary.annotators", "summary.types")),
@@ -67,10 +70,12 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("names", ASCENDING)], name="names"),
         IndexModel([("region", ASCENDING), ("state", ASCENDING)], name="region_state"),
         IndexModel([("last_seen", DESCENDING)], name="seen"),
-        # x, y of the position in metres: the objects a view may contain, by a box query
-        IndexModel([("xy", GEO2D), ("state", ASCENDING)], name="xy_state",
-                   min=-PLACE_LIMIT_M, max=PLACE_LIMIT_M),
+        # a map's objects by x then y (metres, any finite value): those a view may contain
+        IndexModel([("map", ASCENDING), ("x", ASCENDING), ("y", ASCENDING)], name="map_place"),
     ],
+    # the next scenes each map's consolidator takes: in time order, those not held
+    OUTBOX: [IndexModel([("map", ASCENDING), ("held", ASCENDING), ("time", ASCENDING),
+                         ("_id", ASCENDING)], name="map_next")],
     EVENTS: [
         IndexModel([("object_id", ASCENDING), ("time", DESCENDING)], name="object_time"),
         IndexModel([("scene_id", ASCENDING)], name="scene"),
@@ -95,11 +100,11 @@ INDEXES: dict[str, list[IndexModel]] = {
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],
 }
 
-RETIRED_INDEXES = {CLUSTERS: ("types_newest", "labels", "phash")}
+RETIRED_INDEXES = {CLUSTERS: ("types_newest", "labels", "phash"), OBJECTS: ("xy_state",)}
 """Indexes earlier versions created that no query uses any more: dropped by `prepare`."""
 
-COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, JOBS, LOOKUP_CACHE, TYPES, TERMS, LABELS,
-                       GRIDFS_FILES)
+COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, OUTBOX, MAPS, JOBS, LOOKUP_CACHE, TYPES,
+                       TERMS, LABELS, GRIDFS_FILES)
 
 
 def type_string(annotation: Any) -> str:

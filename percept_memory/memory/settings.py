@@ -107,6 +107,20 @@ class Settings(BaseSettings):
         default=2.0, ge=0,
         description="PMEM_JOB_BACKOFF_S: wait before the first retry; doubles each attempt",
     )
+    consolidator: bool = Field(
+        default=True,
+        description="PMEM_CONSOLIDATOR: the web app runs the memory pipeline itself (false when "
+                    "`pmem consolidate` processes run apart)",
+    )
+    map_lease_s: float = Field(
+        default=30.0, gt=0,
+        description="PMEM_MAP_LEASE_S: a map's consolidator is taken over this long after it "
+                    "last wrote",
+    )
+    belief_wait_s: float = Field(
+        default=10.0, ge=0, le=300,
+        description="PMEM_BELIEF_WAIT_S: longest wait of POST /api/scenes?wait=belief",
+    )
 
 
 def settings_help() -> str:

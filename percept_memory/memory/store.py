@@ -30,6 +30,7 @@ from .errors import (
     transaction_too_large,
     unreachable,
 )
+from .naming import renamed
 from .schema import (
     CLUSTERS,
     COUNTED_COLLECTIONS,
@@ -37,6 +38,8 @@ from .schema import (
     GRIDFS_FILES,
     INDEXES,
     LABELS,
+    OBJECTS,
+    OUTBOX,
     RETIRED_INDEXES,
     SCENES,
     TERMS,
@@ -74,6 +77,8 @@ class StoreBase:
         self.types = self.db[TYPES]
         self.files = self.db[GRIDFS_FILES]
         self.chunks = self.db[GRIDFS_CHUNKS]
+        self.outbox = self.db[OUTBOX]
+        self.objects = self.db[OBJECTS]
         self.gridfs_threshold = gridfs_threshold
         self._catalogued: set[str] = set()
         self._known_words: set[tuple[str, str]] = set()
@@ -261,12 +266,16 @@ class MemoryStore(StoreBase):
             doc = self.clusters.find_one({"_id": cluster_id}, session=session)
             if doc is None:
                 raise NotFound("cluster", cluster_id)
-            changed = change(docs.decode_cluster(doc, self._blobs([doc], session)))
+            stored = docs.decode_cluster(doc, self._blobs([doc], session))
+            before = list(stored.annotations)
+            changed = change(stored)
             if changed is None:
                 return docs.Documents()
             written = docs.rewritten_cluster(changed, doc, self.gridfs_threshold)
             self._put_blobs(written.blobs, session)
             self.clusters.replace_one({"_id": cluster_id}, written.clusters[0], session=session)
+            if doc.get("object_id") is not None:
+                self._rename(doc["object_id"], before, changed.annotations, session)
             summary = docs.summary_change(doc, written.clusters[0])
             if summary == docs.RECOUNT:
                 self._summarise(doc["scene_id"], session)
@@ -292,6 +301,15 @@ class MemoryStore(StoreBase):
             if progress:
                 progress()
         return count
+
+    def _rename(self, object_id, before, after, session) -> None:
+        """Keep the names of the object an observation is believed to be in step with the
+        annotations appended to it (naming.py)."""
+        believed = self.objects.find_one({"_id": object_id}, {"label_weights": 1},
+                                            session=session)
+        update = renamed(believed, before, after) if believed else None
+        if update:
+            self.objects.update_one({"_id": object_id}, update, session=session)
 
     def _summarise(self, scene_id: ObjectId, session) -> None:
         """Bring the scene's inline summary up to date with its (rewritten) clusters."""
@@ -339,6 +357,7 @@ class MemoryStore(StoreBase):
         self.scenes.insert_many(written.scenes, session=session)
         if written.clusters:
             self.clusters.insert_many(written.clusters, session=session)
+        self.outbox.insert_many(written.outbox, session=session)
 
     def _transaction(self, work):
         with self.client.start_session() as session:

@@ -363,16 +363,18 @@ class History(About):
 
 
 class Place(Strict):
-    """A region by name, or a volume: exactly one of them."""
+    """A region by name, or a volume, in one map or in every map; or a whole map."""
 
+    map: Name | None = Field(default=None, description="the map (default: every map)")
     region: Name | None = None
     box: Box | None = None
     sphere: Sphere | None = None
 
     @model_validator(mode="after")
     def _one_place(self):
-        if sum(v is not None for v in (self.region, self.box, self.sphere)) != 1:
-            raise ValueError("give exactly one place: region, box or sphere")
+        places = sum(v is not None for v in (self.region, self.box, self.sphere))
+        if places > 1 or (places == 0 and self.map is None):
+            raise ValueError("give one place: region, box or sphere, or a whole map")
         return self
 
 

@@ -185,11 +185,15 @@ def latest_events(objects: dict, t: int, place: Place | None = None) -> Plan[lis
 def ever_at(place: Place, t: int) -> Plan[dict]:
     """A condition on object ids that every object believed at the place at t meets: for a
     region, an event there by t (one index seek per object ever there, however many objects
-    the memory knows elsewhere); for a volume, any object."""
+    the memory knows elsewhere); for a map, its objects; for a volume, any object."""
+    in_map = {} if place.map is None else {"map": place.map}
     if place.region is None:
-        return {"$gte": MinKey()}
+        if place.map is None:
+            return {"$gte": MinKey()}
+        found = yield Find(OBJECTS, in_map, {"_id": 1})
+        return {"$in": [doc["_id"] for doc in found]}
     found = yield Aggregate(EVENTS, [
-        {"$match": {"region": place.region, "time": {"$lte": t}}},
+        {"$match": {"region": place.region, "time": {"$lte": t}, **in_map}},
         {"$sort": {"region": 1, "object_id": 1}},
         {"$group": {"_id": "$object_id"}},
     ])
@@ -199,7 +203,9 @@ def ever_at(place: Place, t: int) -> Plan[dict]:
 def _at(place: Place) -> dict:
     if place.region is not None:
         return {"region": place.region}
-    return inside(place.box or place.sphere, "position")
+    if place.box or place.sphere:
+        return inside(place.box or place.sphere, "position")
+    return {}
 
 
 def what_is_at(q: AtTime) -> Plan[Contents]:
@@ -247,7 +253,7 @@ def _objects_at(events: list[dict], names: dict) -> list[ObjectAt]:
 
 
 def _object_at(e: dict, names: dict) -> ObjectAt:
-    return ObjectAt(object_id=e["object_id"], name=names.get(e["object_id"]),
+    return ObjectAt(object_id=e["object_id"], map=e.get("map"), name=names.get(e["object_id"]),
                     state=STATE_OF[e["explanation"]], region=e.get("region"),
                     position=e.get("position"), since=e["time"], explanation=e["explanation"],
                     cluster_id=e.get("cluster_id"))

@@ -49,6 +49,7 @@ class Belief(BaseModel):
     """What the memory believes about one object now (where_is, last_seen)."""
 
     object_id: Id
+    map: str | None = None  # the map it is believed in
     name: str | None = None
     names: list[str] = []
     state: State
@@ -102,6 +103,7 @@ class ObjectAt(BaseModel):
     """An object believed at a place at a moment (what_is_at, changes)."""
 
     object_id: Id
+    map: str | None = None
     name: str | None = None
     state: State
     region: str | None = None

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import json
 import secrets
-from typing import Annotated, Any
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, Literal
 
 from fastapi import FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -19,9 +20,9 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
 from swagger_ui_bundle import swagger_ui_path
 
-from percept_memory.ingest.jobs import LookupEnqueuer, State, job_report
-from percept_memory.ingest.service import IngestError, IngestService
-from percept_memory.memory.consolidation import Consolidator
+from percept_memory.ingest.jobs import State, job_report
+from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
+from percept_memory.memory.pipeline import status as pipeline_status
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
@@ -46,8 +47,21 @@ def error_response(status: int, message: str, problems: list | None = None) -> J
 
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
-    """The app on a store; one IngestService serves every write."""
+    """The app on a store; one IngestService serves every write. The app runs the memory
+    pipeline in a thread while it serves (unless settings.consolidator is off)."""
+    pipeline = memory_pipeline(store, settings)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        if settings.consolidator:
+            pipeline.start()
+        try:
+            yield
+        finally:
+            pipeline.stop()
+
     app = FastAPI(
+        lifespan=lifespan,
         title="percept-memory",
         description="Long-term spatio-temporal memory for robot perception.",
         version="0.1.0",
@@ -55,7 +69,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
-    service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
+    service = IngestService(store, pipeline=pipeline)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
     mount_pages(app, store, settings)  # the HTML pages (pages.py)
@@ -88,10 +102,18 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         return scene_schema
 
     @app.post("/api/scenes", status_code=201, summary="Store one scene or a batch of scenes")
-    async def post_scenes(request: Request) -> dict[str, Any]:
+    async def post_scenes(
+        request: Request,
+        wait: Annotated[Literal["belief"] | None, Query(
+            description="`belief`: answer once the new scenes are consolidated into the "
+                        "belief (at most PMEM_BELIEF_WAIT_S); `belief` in the answer says "
+                        "whether they were")] = None,
+    ) -> dict[str, Any]:
         """Body: a scene, or a list of scenes, as GET /api/schema/scene describes. A batch is
-        validated whole and stored in one transaction. Scenes stored before (same robot and
-        timestamp) keep their ids and come back with `created: false`."""
+        validated whole and stored in one transaction, with its place in the memory pipeline:
+        the answer comes once the scenes are durably stored; identity consolidation and
+        lookups follow (see GET /api/pipeline), unless `wait=belief`. Scenes stored before
+        (same robot and timestamp) keep their ids and come back with `created: false`."""
         _authorise(request, settings.token)
         data = _parse_json(await _read_body(request, max_bytes))
         items = data if isinstance(data, list) else [data]
@@ -101,7 +123,11 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             results = await run_in_threadpool(service.ingest_batch, items)
         except IngestError as error:
             raise ApiError(422, "the scenes are not valid", error.problems) from None
-        return {"scenes": [
+        answer: dict[str, Any] = {}
+        if wait:
+            answer["belief"] = "current" if await run_in_threadpool(
+                service.settled, results, settings.belief_wait_s) else "pending"
+        return {**answer, "scenes": [
             {"scene_id": str(r.scene_id), "cluster_ids": [str(c) for c in r.cluster_ids],
              "annotation_ids": [[str(a) for a in ids] for ids in r.annotation_ids],
              "created": r.created}
@@ -110,6 +136,13 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     app.include_router(query_router(QueryEngine(store, settings)))
     app.include_router(export_router(store, settings))
+
+    @app.get("/api/pipeline", summary="How far the belief of each map is")
+    def pipeline_report() -> dict[str, Any]:
+        """Per map: `consolidated_until` (the time in ns of the newest scene consolidated into
+        its belief), the scenes `pending` and `held` (a stage kept failing; the `held` list
+        gives their errors), whether it is `rebuilding` and which process consolidates it."""
+        return pipeline_status(store)
 
     @app.get("/api/jobs", summary="The enrichment queue: jobs per state, the latest jobs")
     def list_jobs(state: State | None = None,

@@ -6,8 +6,9 @@ to its page and labelled with its name. The moment is `t` (nanoseconds since the
 since a browser sends a range input's large values in exponent form. A plain GET form with the
 slider picks the moment; links step to the scene before and after it.
 
-The store keeps no outlines of regions, so a region is drawn as the box around the positions
-of its most recent observations (REGION_SAMPLE clusters each, by the region index).
+The page shows one map at a time (`map`, default: the map of the newest scene), chosen from a
+list: regions, objects and the belief are per map. The store keeps no outlines of regions, so
+a region is drawn as the box around the positions of the map's objects last seen in it.
 """
 
 from __future__ import annotations
@@ -20,18 +21,16 @@ from fastapi.responses import HTMLResponse
 from pydantic import TypeAdapter, ValidationError
 from pymongo import ASCENDING, DESCENDING
 
-from percept_memory.memory.schema import PLACE_LIMIT_M
+from percept_memory.memory.schema import MAPS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
-from percept_memory.queries.model import Box, Time
+from percept_memory.queries.model import Time
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.results import ObjectAt
 
 from .html import PageError, bounded_int, page
 
 SECOND = 1_000_000_000
-EVERYWHERE = Box(low=(-PLACE_LIMIT_M,) * 3, high=(PLACE_LIMIT_M,) * 3)
-REGION_SAMPLE = 200
 MAX_REGIONS = 500
 WIDTH, MAX_HEIGHT, MARGIN, PAD_M = 960, 720, 24, 0.15
 time_of_text = TypeAdapter(Time)
@@ -81,17 +80,22 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
     @router.get("/map")
-    async def map_page(request: Request, t: str = "", at: str = "") -> HTMLResponse:
-        span = await run_in_threadpool(_recorded_span, store)
-        if span is None:
+    async def map_page(request: Request, map: str = "", t: str = "",
+                       at: str = "") -> HTMLResponse:
+        maps = await run_in_threadpool(_maps, store)
+        if not maps:
             return page(request, "map.html", {"span": None})
+        chosen = map or await run_in_threadpool(_newest_map, store)
+        if chosen not in maps:
+            raise PageError(404, f"no map named {chosen!r}")
+        span = await run_in_threadpool(_recorded_span, store, chosen)
         moment = _moment(t, at) or span[1]
 
         def load():
-            believed = engine.what_is_at(box=EVERYWHERE, t=moment).objects
+            believed = engine.what_is_at(map=chosen, t=moment).objects
             placed = [o for o in believed if o.position is not None]
-            return believed, placed, floor_plan(store, [o.position for o in placed]), \
-                _neighbours(store, moment)
+            return believed, placed, floor_plan(store, chosen, [o.position for o in placed]), \
+                _neighbours(store, chosen, moment)
 
         try:
             believed, placed, (view, regions), (earlier, later) = await run_in_threadpool(load)
@@ -99,7 +103,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             raise PageError(503, str(error)) from None
         objects = [DrawnObject(o, *view.point(o.position[0], o.position[1])) for o in placed]
         return page(request, "map.html", {
-            "span": span, "t": moment, "view": view, "regions": regions, "objects": objects,
+            "maps": maps, "map": chosen, "span": span, "t": moment, "view": view,
+            "regions": regions, "objects": objects,
             "unplaced": [o for o in believed if o.position is None],
             "earlier": earlier, "later": later, "second": SECOND,
         })
@@ -107,12 +112,12 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     return router
 
 
-def floor_plan(store: MemoryStore, positions: list, width: int = WIDTH,
+def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width: int = WIDTH,
                max_height: int = MAX_HEIGHT) -> tuple[Projection, list[DrawnRegion]]:
-    """The regions drawn top-down, in a projection that holds them and these positions (map
-    frame, metres: x, y and any more coordinates) in at most width x max_height pixels. The
-    map page and the object page's track draw on it (macros.html: floor_plan)."""
-    boxes = _region_boxes(store)
+    """The map's regions drawn top-down, in a projection that holds them and these positions
+    (metres: x, y and any more coordinates) in at most width x max_height pixels. The map page
+    and the object page's track draw on it (macros.html: floor_plan)."""
+    boxes = _region_boxes(store, map_name)
     xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
     ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
     view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
@@ -136,42 +141,46 @@ def _moment(t: str, at: str) -> int | None:
         raise PageError(422, f"t: {error.errors()[0]['msg']}") from None
 
 
-def _recorded_span(store: MemoryStore) -> tuple[int, int] | None:
-    """The first and the last scene's time, to whole seconds (the slider's ends)."""
-    first = store.scenes.find_one({}, {"timestamp": 1}, sort=[("timestamp", ASCENDING)])
-    last = store.scenes.find_one({}, {"timestamp": 1}, sort=[("timestamp", DESCENDING)])
+def _maps(store: MemoryStore) -> list[str]:
+    """The maps with a belief, by name."""
+    return sorted(store.db[MAPS].distinct("_id"))
+
+
+def _newest_map(store: MemoryStore) -> str | None:
+    newest = store.scenes.find_one({}, {"map": 1}, sort=[("timestamp", DESCENDING)])
+    return newest and newest.get("map")
+
+
+def _recorded_span(store: MemoryStore, map_name: str) -> tuple[int, int]:
+    """The first and the last scene's time of the map, to whole seconds (the slider's ends)."""
+    first, last = (store.scenes.find_one({"map": map_name}, {"timestamp": 1},
+                                         sort=[("map", 1), ("timestamp", order)])
+                   for order in (ASCENDING, DESCENDING))
     if first is None:
-        return None
+        return 0, 0
     return (first["timestamp"] // SECOND * SECOND,
             -(-last["timestamp"] // SECOND) * SECOND)
 
 
-def _neighbours(store: MemoryStore, t: int) -> tuple[int | None, int | None]:
-    """The times of the scenes just before and just after t."""
-    before = store.scenes.find_one({"timestamp": {"$lt": t}}, {"timestamp": 1},
-                                   sort=[("timestamp", DESCENDING)])
-    after = store.scenes.find_one({"timestamp": {"$gt": t}}, {"timestamp": 1},
-                                  sort=[("timestamp", ASCENDING)])
+def _neighbours(store: MemoryStore, map_name: str, t: int) -> tuple[int | None, int | None]:
+    """The times of the map's scenes just before and just after t."""
+    before = store.scenes.find_one({"map": map_name, "timestamp": {"$lt": t}}, {"timestamp": 1},
+                                   sort=[("map", 1), ("timestamp", DESCENDING)])
+    after = store.scenes.find_one({"map": map_name, "timestamp": {"$gt": t}}, {"timestamp": 1},
+                                  sort=[("map", 1), ("timestamp", ASCENDING)])
     return (before and before["timestamp"]), (after and after["timestamp"])
 
 
-def _region_boxes(store: MemoryStore) -> dict[str, tuple[list[float], list[float]]]:
-    """Per region, the (x, y) box around the positions of its latest observations."""
-    boxes = {}
-    regions = [r for r in store.clusters.distinct("search.region") if r][:MAX_REGIONS]
-    for region in regions:
-        found = list(store.clusters.aggregate([
-            {"$match": {"search.region": region}},
-            {"$sort": {"search.time": -1, "_id": -1}},
-            {"$limit": REGION_SAMPLE},
-            {"$match": {"search.position": {"$type": "array"}}},
-            {"$group": {"_id": None,
-                        "x0": {"$min": {"$arrayElemAt": ["$search.position", 0]}},
-                        "y0": {"$min": {"$arrayElemAt": ["$search.position", 1]}},
-                        "x1": {"$max": {"$arrayElemAt": ["$search.position", 0]}},
-                        "y1": {"$max": {"$arrayElemAt": ["$search.position", 1]}}}},
-        ]))
-        if found:
-            b = found[0]
-            boxes[region] = ([b["x0"] - PAD_M, b["y0"] - PAD_M], [b["x1"] + PAD_M, b["y1"] + PAD_M])
-    return boxes
+def _region_boxes(store: MemoryStore,
+                  map_name: str | None) -> dict[str, tuple[list[float], list[float]]]:
+    """Per region of the map, the (x, y) box around its objects last seen there (by the
+    objects' map index)."""
+    found = store.db[OBJECTS].aggregate([
+        {"$match": {"map": map_name, "region": {"$type": "string"}, "x": {"$ne": None}}},
+        {"$group": {"_id": "$region", "x0": {"$min": "$x"}, "y0": {"$min": "$y"},
+                    "x1": {"$max": "$x"}, "y1": {"$max": "$y"}}},
+        {"$sort": {"_id": 1}},
+        {"$limit": MAX_REGIONS},
+    ])
+    return {b["_id"]: ([b["x0"] - PAD_M, b["y0"] - PAD_M], [b["x1"] + PAD_M, b["y1"] + PAD_M])
+            for b in found}

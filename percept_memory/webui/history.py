@@ -62,8 +62,8 @@ def routes(store: MemoryStore) -> APIRouter:
             history = list(events.find({"object_id": key}).sort("time", DESCENDING)
                            .limit(EVENTS_SHOWN))
             placed = [e for e in reversed(history) if e.get("position")]
-            view, regions = floor_plan(store, [e["position"] for e in placed], TRACK_WIDTH,
-                                       TRACK_HEIGHT)
+            view, regions = floor_plan(store, believed.get("map"), [e["position"] for e in placed],
+                                       TRACK_WIDTH, TRACK_HEIGHT)
             return believed, history, view, regions, track(view, placed)
 
         believed, history, view, regions, marks = await run_in_threadpool(load)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import TypeVar
 
+from pydantic import Field, model_validator
+
 from .annotations import Annotation, Location, LogLine, Relation
 from .base import Id, Identifiable, Timestamp, polymorphic, stored_type
 from .hypotheses import Hypothesis, SpatialVolume
@@ -54,6 +56,11 @@ class Scene(Identifiable):
     timestamp: Timestamp
     robot: str = ""
     frame: str = "map"
+    # The unit of space: regions, objects and the belief are per map, and observations in two
+    # maps are never one object. Default: the robot and its frame ("pr2/map"), given when the
+    # scene is validated.
+    map: str = Field("", max_length=200, description=(
+        "the map (site) the scene belongs to; default: robot/frame"))
     camera_pose: Transform | None = None  # the camera in `frame`
     camera: CameraInfo | None = None
     # What the sensor saw, when the scene says so (in `frame`); else the camera's frustum
@@ -65,3 +72,14 @@ class Scene(Identifiable):
     relations: list[Relation] = []
     annotations: list[polymorphic(Annotation)] = []
     log: list[LogLine] = []
+
+    @model_validator(mode="after")
+    def _default_map(self) -> Scene:
+        if not self.map:
+            self.map = default_map(self.robot, self.frame)
+        return self
+
+
+def default_map(robot: str, frame: str) -> str:
+    """The map of a scene that names none: its robot's frame."""
+    return f"{robot}/{frame}" if robot else frame

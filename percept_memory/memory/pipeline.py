@@ -1,0 +1,387 @@
+"""The memory pipeline: the after-store stages of every stored scene, run from an outbox exactly
+once, in time order per map (DESIGN.md: the memory pipeline and maps).
+
+A scene is written together with its outbox entry, in one transaction (store.py), so an
+acknowledged scene is never without its pending stages. Consolidators (`Pipeline`: a thread of
+the server, `pmem consolidate`, or a caller waiting for the belief) take each map's entries
+strictly in (time, scene id) order and apply every stage (identity consolidation, enqueueing
+lookups, ...) to a batch of scenes in one transaction that also removes the batch's entries:
+each stage's writes land exactly once or not at all, whoever dies when.
+
+- One writer per map: a lease in `maps` (owner, token, until), taken when free or expired and
+  checked in every stage transaction (a fence: a consolidator that lost its lease, paused
+  longer than the lease, cannot commit). Any number of maps go in parallel, in any process.
+- Failures are retried with exponential backoff while the map waits, so its order holds.
+  After `max_attempts` a scene is *held*: kept with its error and shown (`pmem pipeline`,
+  GET /api/pipeline, the /pipeline page), and the scenes behind it go on: one bad scene never
+  stops a robot's memory. A held scene is retried by hand (`pmem pipeline --retry`).
+- Late scenes: a scene older than the newest consolidated scene of its map (it arrived late,
+  or was held and retried) rebuilds the map: the belief stages forget the map and every scene
+  of the map is queued for them again. So the belief always equals what consolidating the
+  map's scenes in time order gives, and `pmem reconsolidate` is the same code: it asks every
+  map to be rebuilt.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Iterable, Sequence
+from datetime import UTC, datetime, timedelta
+from typing import Any, Protocol
+
+from bson import ObjectId
+from pymongo import ASCENDING, ReturnDocument
+from pymongo.errors import BulkWriteError, ConnectionFailure, DuplicateKeyError, PyMongoError
+
+from .documents import outbox_entry
+from .schema import MAPS, OUTBOX, SCENES
+from .store import MemoryStore
+from .types import datetime_from_timestamp
+
+log = logging.getLogger(__name__)
+
+LEASE_S = 30.0
+BATCH = 32
+MAX_ATTEMPTS = 5
+BACKOFF_S = 0.5  # then 1, 2, 4 s: a failing scene holds its map about 8 s before it is held
+POLL_S = 0.25
+ORDER = [("time", ASCENDING), ("_id", ASCENDING)]
+DUPLICATE_KEY = 11000
+
+
+class Stage(Protocol):
+    """An after-store stage: what happens to every stored scene, once."""
+
+    name: str
+    belief: bool  # part of a map's belief: run again on every scene when the map is rebuilt
+
+    def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
+        """Do the stage's work for these scenes of one map, in this order, in the session's
+        transaction."""
+
+    def reset(self, map_name: str) -> None:
+        """Forget what the stage knows of a map (belief stages), before it is rebuilt."""
+
+
+class LeaseLost(Exception):
+    """Another consolidator took the map over (this one was paused past its lease)."""
+
+
+def utc_now() -> datetime:
+    return datetime.now(UTC)
+
+
+class Pipeline:
+    """Runs the stages on the outbox's scenes, map by map, under a lease per map."""
+
+    def __init__(self, store: MemoryStore, stages: Sequence[Stage], *, lease_s: float = LEASE_S,
+                 batch: int = BATCH, max_attempts: int = MAX_ATTEMPTS,
+                 backoff_s: float = BACKOFF_S, poll_s: float = POLL_S):
+        self.store = store
+        self.stages = list(stages)
+        self.outbox = store.db[OUTBOX]
+        self.maps = store.db[MAPS]
+        self.lease = timedelta(seconds=lease_s)
+        self.batch = batch
+        self.max_attempts = max_attempts
+        self.backoff_s = backoff_s
+        self.poll_s = poll_s
+        self.owner = f"{socket.gethostname()}:{os.getpid()}:{ObjectId()}"
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # --- running ---------------------------------------------------------------------------
+
+    def run_once(self) -> int:
+        """One pass over every map with work: returns the scenes that went through."""
+        maps = set(self.outbox.distinct("map", {"held": False}))
+        maps |= {doc["_id"] for doc in self.maps.find({"rebuild": True}, {"_id": 1})}
+        return sum(self._work_on(name) for name in sorted(maps))
+
+    def drain(self, timeout: float | None = None, progress=None) -> int:
+        """Run until no scene is pending (also those a consolidator elsewhere is working on),
+        or the timeout passes: returns the scenes that went through here."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        total = 0
+        while (deadline is None or time.monotonic() < deadline) and self.pending():
+            done = self.run_once()
+            total += done
+            if progress and done:
+                progress(done)
+            if not done:
+                time.sleep(self.poll_s / 5)
+        return total
+
+    def pending(self, scene_ids: Iterable[ObjectId] | None = None) -> int:
+        """Scenes waiting for their stages (of these scenes, if given), held ones aside; maps
+        waiting to be rebuilt count as pending too."""
+        query: dict[str, Any] = {"held": False}
+        if scene_ids is not None:
+            return self.outbox.count_documents({**query, "_id": {"$in": list(scene_ids)}})
+        return (self.outbox.count_documents(query)
+                + self.maps.count_documents({"rebuild": True}))
+
+    def wait(self, scene_ids: Sequence[ObjectId], timeout: float) -> bool:
+        """Until these scenes went through (True) or the timeout passed (False). Works on them
+        here unless a background thread of this pipeline does."""
+        deadline = time.monotonic() + timeout
+        self._wake.set()
+        while self.pending(scene_ids):
+            if time.monotonic() >= deadline:
+                return False
+            if self._thread is None and self.run_once():
+                continue
+            time.sleep(min(0.01, max(deadline - time.monotonic(), 0)))
+        return True
+
+    def start(self) -> Pipeline:
+        """Run in a background thread until stop()."""
+        self._stop.clear()
+        self._thread = threading.Thread(target=self.run_forever, name="pmem-pipeline",
+                                        daemon=True)
+        self._thread.start()
+        return self
+
+    def stop_soon(self) -> None:
+        """Ask run_forever to return after what it is doing (from a signal handler too)."""
+        self._stop.set()
+        self._wake.set()
+
+    def stop(self) -> None:
+        """Stop the background thread, after what it is doing."""
+        self.stop_soon()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def wake(self) -> None:
+        """New scenes were stored: look now, not at the next poll."""
+        self._wake.set()
+
+    def run_forever(self) -> None:
+        """Work whenever there is work, until stop(); a database outage is waited out."""
+        while not self._stop.is_set():
+            try:
+                done = self.run_once()
+            except PyMongoError as error:
+                log.warning("pipeline: the database is not answering (%s); retrying", error)
+                done = 0
+                self._stop.wait(5 * self.poll_s)
+            if not done:
+                self._wake.wait(self.poll_s)
+                self._wake.clear()
+
+    # --- one map ---------------------------------------------------------------------------
+
+    def _work_on(self, map_name: str) -> int:
+        lease = self._acquire(map_name)
+        if lease is None:
+            return 0
+        token = lease["lease"]["token"]
+        try:
+            if lease.get("rebuild"):
+                self._rebuild(map_name, token)
+                lease["consolidated"] = None
+            return self._consolidate(map_name, token, lease.get("consolidated"))
+        except LeaseLost:
+            log.warning("pipeline: lost the lease of map %r to another consolidator", map_name)
+            return 0
+        finally:
+            self.maps.update_one({"_id": map_name, "lease.token": token}, {"$set": {"lease": None}})
+
+    def _consolidate(self, map_name: str, token: ObjectId, watermark) -> int:
+        """The map's due entries in order, a batch per transaction; a batch that fails is
+        tried scene by scene, so only the failing scene waits and is counted against."""
+        count, size = 0, self.batch
+        while True:
+            entries = self._next(map_name, size)
+            if not entries:
+                return count
+            head = (entries[0]["time"], entries[0]["_id"])
+            if watermark is not None and head <= tuple(watermark):
+                log.info("pipeline: a late scene rebuilds map %r", map_name)
+                self._rebuild(map_name, token)
+                watermark = None
+                continue
+            try:
+                self._apply(map_name, token, entries)
+            except (LeaseLost, ConnectionFailure):  # not the scene's fault: try again later
+                raise
+            except Exception as error:  # any stage's failure: kept with the scene, retried
+                if len(entries) > 1:
+                    size = 1
+                    continue
+                self._failed(entries[0], error)
+                if entries[0]["attempts"] + 1 < self.max_attempts:
+                    return count  # the map waits out the backoff, in order
+                continue
+            count += len(entries)
+            size = self.batch
+            watermark = (entries[-1]["time"], entries[-1]["_id"])
+
+    def _next(self, map_name: str, size: int) -> list[dict]:
+        """The next entries of the map that are due, in order (none while the first waits)."""
+        now = utc_now()
+        entries = []
+        for entry in self.outbox.find({"map": map_name, "held": False}).sort(ORDER).limit(size):
+            if entry["due"] is not None and entry["due"] > now:
+                break
+            entries.append(entry)
+        return entries
+
+    def _apply(self, map_name: str, token: ObjectId, entries: list[dict]) -> None:
+        ids = [entry["_id"] for entry in entries]
+        last = entries[-1]
+
+        def work(session):
+            fenced = self.maps.update_one(
+                {"_id": map_name, "lease.token": token},
+                {"$set": {"lease.until": utc_now() + self.lease,
+                          "consolidated": [last["time"], last["_id"]], "updated": utc_now()}},
+                session=session)
+            if not fenced.matched_count:
+                raise LeaseLost(map_name)
+            for stage in self.stages:
+                todo = [entry["_id"] for entry in entries if stage.name not in entry["done"]]
+                if todo:
+                    try:
+                        stage.apply(todo, map_name, session)
+                    except PyMongoError:
+                        raise
+                    except Exception as error:
+                        raise StageFailed(stage.name, error) from error
+            self.outbox.delete_many({"_id": {"$in": ids}}, session=session)
+
+        self.store._transaction(work)
+
+    def _failed(self, entry: dict, error: Exception) -> None:
+        attempts = entry["attempts"] + 1
+        held = attempts >= self.max_attempts
+        message = str(error) if isinstance(error, StageFailed) else repr(error)
+        due = None if held else utc_now() + timedelta(seconds=self.backoff_s * 2 ** (attempts - 1))
+        self.outbox.update_one({"_id": entry["_id"]}, {"$set": {
+            "attempts": attempts, "held": held, "due": due, "error": message[:2000],
+            "failed_at": utc_now()}})
+        log.warning("pipeline: scene %s of map %r failed (attempt %d%s): %s", entry["_id"],
+                    entry["map"], attempts, ", held" if held else "", message)
+
+    # --- leases and rebuilds ---------------------------------------------------------------
+
+    def _acquire(self, map_name: str) -> dict | None:
+        """The map's document with a fresh lease of ours, or None when another holds it."""
+        now = utc_now()
+        try:
+            return self.maps.find_one_and_update(
+                {"_id": map_name, "$or": [{"lease": None}, {"lease.until": {"$lt": now}}]},
+                {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
+                                    "until": now + self.lease}}},
+                upsert=True, return_document=ReturnDocument.AFTER)
+        except DuplicateKeyError:
+            return None
+
+    def _rebuild(self, map_name: str, token: ObjectId) -> None:
+        """Forget the map's belief and queue every scene of the map for the belief stages
+        again. Idempotent: a consolidator that dies halfway leaves the request for the next."""
+        self.maps.update_one({"_id": map_name, "lease.token": token},
+                             {"$set": {"rebuild": True, "consolidated": None}})
+        belief = [stage.name for stage in self.stages if stage.belief]
+        others = [stage.name for stage in self.stages if not stage.belief]
+        for stage in self.stages:
+            if stage.belief:
+                stage.reset(map_name)
+        self.outbox.update_many({"map": map_name}, {"$pullAll": {"done": belief}})
+        scenes = self.store.db[SCENES].find({"map": map_name}, {"timestamp": 1}).sort(
+            [("map", ASCENDING), ("timestamp", ASCENDING), ("_id", ASCENDING)])
+        for chunk in _chunks(scenes, 1000):
+            entries = [outbox_entry(doc["_id"], map_name, doc["timestamp"], others)
+                       for doc in chunk]
+            try:
+                self.outbox.insert_many(entries, ordered=False)
+            except BulkWriteError as error:  # those in the outbox already keep their entry
+                if any(e["code"] != DUPLICATE_KEY for e in error.details["writeErrors"]):
+                    raise
+        if not self.maps.update_one({"_id": map_name, "lease.token": token},
+                                    {"$set": {"rebuild": False}}).matched_count:
+            raise LeaseLost(map_name)
+
+
+class StageFailed(Exception):
+    """A stage raised: the message names the stage."""
+
+    def __init__(self, stage: str, error: Exception):
+        super().__init__(f"{stage}: {type(error).__name__}: {error}")
+
+
+def _chunks(items: Iterable, size: int):
+    chunk = []
+    for item in items:
+        chunk.append(item)
+        if len(chunk) == size:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+# --- what the pipeline is doing, for the CLI, the API and the UI -------------------------------
+
+
+def request_rebuild(store: MemoryStore, maps: Iterable[str] | None = None) -> list[str]:
+    """Ask for these maps' belief (default: every map) to be rebuilt from their scenes by the
+    consolidators (`pmem reconsolidate`). Scenes stored before maps existed get theirs."""
+    from .types.scene import default_map
+
+    scenes = store.db[SCENES]
+    for doc in scenes.find({"map": {"$exists": False}}, {"robot": 1, "frame": 1}):
+        scenes.update_one({"_id": doc["_id"]}, {"$set": {
+            "map": default_map(doc.get("robot", ""), doc.get("frame", "map"))}})
+    names = sorted(maps) if maps is not None else sorted(scenes.distinct("map"))
+    for name in names:
+        store.db[MAPS].update_one({"_id": name}, {"$set": {"rebuild": True}}, upsert=True)
+    return names
+
+
+def retry_held(store: MemoryStore) -> int:
+    """Queue the held scenes again (they are late now: their maps will be rebuilt)."""
+    return store.db[OUTBOX].update_many({"held": True}, {"$set": {
+        "held": False, "attempts": 0, "due": None}}).modified_count
+
+
+def status(store: MemoryStore, held_limit: int = 50) -> dict:
+    """How far the belief of each map is: the newest consolidated scene's time, the scenes
+    pending and held, whether it is being rebuilt and who holds its lease; the held scenes
+    with their errors."""
+    outbox = store.db[OUTBOX]
+    counts: dict[str, dict[str, int]] = {}
+    for row in outbox.aggregate([{"$group": {"_id": {"map": "$map", "held": "$held"},
+                                             "n": {"$sum": 1}}}]):
+        kind = "held" if row["_id"]["held"] else "pending"
+        counts.setdefault(row["_id"]["map"], {})[kind] = row["n"]
+    maps = {doc["_id"]: doc for doc in store.db[MAPS].find()}
+    rows = []
+    for name in sorted(set(maps) | set(counts)):
+        doc = maps.get(name, {})
+        lease = doc.get("lease") or {}
+        watermark = doc.get("consolidated")
+        rows.append({
+            "map": name,
+            "consolidated_until": _iso(watermark[0]) if watermark else None,
+            "consolidated_until_ns": watermark[0] if watermark else None,
+            "pending": counts.get(name, {}).get("pending", 0),
+            "held": counts.get(name, {}).get("held", 0),
+            "rebuilding": bool(doc.get("rebuild")),
+            "consolidator": lease.get("owner"),
+        })
+    held = [{"scene_id": str(e["_id"]), "map": e["map"], "time": _iso(e["time"]),
+             "time_ns": e["time"], "attempts": e["attempts"], "error": e["error"]}
+            for e in outbox.find({"held": True}).sort(ORDER).limit(held_limit)]
+    return {"maps": rows, "held": held}
+
+
+def _iso(ns: int) -> str:
+    return datetime_from_timestamp(ns).isoformat().replace("+00:00", "Z")

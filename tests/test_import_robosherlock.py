@@ -336,9 +336,10 @@ def restored_pnp(mongo_uri: str, db_name: str):
 
 
 def test_read_database_gives_the_same_scenes_as_the_dump(mongo_uri, restored_pnp):
-    from_database = list(read_database(mongo_uri, restored_pnp))
-    assert len(from_database) == 35
-    assert from_database == list(read_dump(PNP))
+    from_database = list(read_database(mongo_uri, restored_pnp, map_name="pnp09"))
+    assert len(from_database) == 35 and {s.map for s in from_database} == {"pnp09"}
+    assert from_database == list(read_dump(PNP, map_name="pnp09"))
+    assert {s.map for s in read_dump(PNP)} == {f"robosherlock/{PNP.name}"}
 
 
 def test_a_truncated_dump_names_the_file(tmp_path):

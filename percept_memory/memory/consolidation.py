@@ -47,6 +47,7 @@ MAX_UNSEEN_CANDIDATES = 32
 DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
+RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
@@ -165,10 +166,12 @@ class Consolidation:
                 if view.sees(_vec(doc.get("position"))):
                     in_sight.append((doc, True))
         seen = [doc["_id"] for doc, _ in in_sight]
-        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}},
-                                   session=session).sort("last_seen", -1)
-        unseen = [(doc, False) for doc in recent.limit(self.max_unseen_candidates)]
-        return in_sight + unseen
+        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, session=session
+                                   ).sort(RECENT).limit(self.max_unseen_candidates)
+        unseen = [(doc, False) for doc in recent]
+        # in an order of the stored data's own (not of the objects' ids, made afresh by a
+        # rebuild), so that a rebuild decides the same, to the last bit
+        return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
 
     def objects_near(self, map_name: str, bounds, session=None) -> Cursor:
         """The objects of a map believed present or hidden whose x, y lie in a box

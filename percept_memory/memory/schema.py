@@ -72,6 +72,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("last_seen", DESCENDING)], name="seen"),
         # a map's objects by x then y (metres, any finite value): those a view may contain
         IndexModel([("map", ASCENDING), ("x", ASCENDING), ("y", ASCENDING)], name="map_place"),
+        # a map's most recently seen objects (memory/consolidation.py: unseen candidates)
+        IndexModel([("map", ASCENDING), ("last_seen", DESCENDING), ("last_cluster", DESCENDING)],
+                   name="map_seen"),
     ],
     # the next scenes each map's consolidator takes: in time order, those not held
     OUTBOX: [IndexModel([("map", ASCENDING), ("held", ASCENDING), ("time", ASCENDING),

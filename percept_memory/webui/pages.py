@@ -19,7 +19,17 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Image, ImageROI, Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import annotators, belief_map, enrichment, history, live, render, scene_log, search
+from . import (
+    annotators,
+    belief_map,
+    enrichment,
+    history,
+    live,
+    pipeline,
+    render,
+    scene_log,
+    search,
+)
 from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
@@ -33,6 +43,7 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     for router in (scene_log.routes(store), page_routes(store), history.routes(store),
                    search.routes(store, engine), belief_map.routes(store, engine),
                    annotators.routes(store, engine), enrichment.routes(store),
+                   pipeline.routes(store),
                    live.routes(store)):
         app.include_router(router)
 

@@ -55,7 +55,8 @@ def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
     total_p, total_q = sum(p.values()), sum(q.values())
     if total_p <= 0 or total_q <= 0:
         return None
-    return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in p.keys() & q.keys()))
+    shared = sorted(p.keys() & q.keys())  # in order: the same float sum in any process
+    return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in shared))
 
 
 _WORD = re.compile(r"[^\W_]+")
@@ -145,7 +146,8 @@ class SemanticColor(Annotation):
     def similarity(a: SemanticColor, b: SemanticColor) -> float | None:
         if not a.ratios or not b.ratios:
             return None
-        return sum(min(a.ratios[k], b.ratios[k]) for k in a.ratios.keys() & b.ratios.keys())
+        shared = sorted(a.ratios.keys() & b.ratios.keys())  # the same sum in any process
+        return sum(min(a.ratios[k], b.ratios[k]) for k in shared)
 
 
 @stored_type("pm.annotation.ColorHistogram")

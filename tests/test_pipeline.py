@@ -1,0 +1,366 @@
+"""The memory pipeline: exactly once, in order per map, failures held and shown, late scenes,
+maps kept apart, any finite coordinates, and the belief built live equal to the one rebuilt."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from pymongo import MongoClient
+
+from percept_memory.ingest import kitchen_week
+from percept_memory.ingest.service import IngestService, memory_pipeline
+from percept_memory.memory.consolidation import Consolidation
+from percept_memory.memory.mongod import EmbeddedMongod
+from percept_memory.memory.pipeline import (
+    LeaseLost,
+    Pipeline,
+    request_rebuild,
+    retry_held,
+    status,
+)
+from percept_memory.memory.schema import CALIBRATION, EVENTS, MAPS, OBJECTS, OUTBOX
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.memory.types import (
+    Cluster,
+    Location,
+    Scene,
+    SemanticColor,
+    Shape,
+    SpatialVolume,
+    WebLookup,
+)
+from percept_memory.queries.engine import QueryEngine
+
+from .conftest import ingest_consolidated
+
+BELIEF = (OBJECTS, EVENTS, OUTBOX, MAPS, CALIBRATION)
+
+
+@pytest.fixture
+def empty(store):
+    """The module's store with no scenes and no belief left by other tests."""
+    for name in (*BELIEF, "scenes", "clusters", "jobs"):
+        store.db[name].delete_many({})
+    return store
+
+
+@pytest.fixture(scope="module")
+def week():
+    return kitchen_week.generate(days=2)
+
+
+def thing(x: float, colour: str, region: str = "table", y: float = 0.0) -> Cluster:
+    return Cluster(annotations=[Location(region=region, position=(x, y, 0.8)),
+                                SemanticColor(ratios={colour: 1.0}), Shape(shape="box")])
+
+
+def looking_at(x0: float, x1: float, y: float = 0.0) -> SpatialVolume:
+    return SpatialVolume(box_min=(x0, y - 1.0, 0.0), box_max=(x1, y + 1.0, 2.0))
+
+
+def canonical_belief(store: MemoryStore) -> tuple[list, list]:
+    """The objects and events, ids aside: an object is named by its first observation (cluster
+    ids are the stored data's own), so two beliefs compare document for document."""
+    first = {}
+    for doc in store.clusters.find({"object_id": {"$ne": None}}, {"object_id": 1}).sort("_id"):
+        first.setdefault(doc["object_id"], doc["_id"])
+
+    def name(object_id):
+        return first.get(object_id, "unobserved")
+
+    objects = sorted(
+        ({**{k: v for k, v in doc.items() if k != "_id"}, "key": name(doc["_id"])}
+         for doc in store.db[OBJECTS].find()), key=lambda d: str(d["key"]))
+    events = sorted(
+        ({**{k: v for k, v in doc.items() if k not in ("_id", "object_id", "alternatives")},
+          "key": name(doc["object_id"]),
+          "alternatives": [{**a, "object_id": a["object_id"] and name(a["object_id"])}
+                           for a in doc["alternatives"]]}
+         for doc in store.db[EVENTS].find()),
+        key=lambda d: (d["time"], str(d["key"]), d["explanation"]))
+    return objects, events
+
+
+def rebuilt(store: MemoryStore) -> tuple[list, list]:
+    request_rebuild(store)
+    memory_pipeline(store).drain(timeout=600)
+    return canonical_belief(store)
+
+
+# --- exactly once, in order ------------------------------------------------------------------
+
+
+def test_a_scene_is_acknowledged_with_its_stages_pending_and_consolidated_once(empty, week):
+    service = IngestService(empty)
+    ids = service.ingest_batch(week.scenes[:10])
+    assert empty.db[OUTBOX].count_documents({}) == 10  # stored: durable, not yet consolidated
+    assert empty.db[EVENTS].count_documents({}) == 0
+    assert service.settled(ids, timeout=60)
+    clusters = sum(len(s.clusters) for s in week.scenes[:10])
+    assert empty.db[OUTBOX].count_documents({}) == 0
+    assert empty.db[EVENTS].count_documents({"cluster_id": {"$ne": None}}) == clusters
+    assert empty.db["jobs"].count_documents({}) == clusters  # every crop queued for a lookup
+    assert service.pipeline.run_once() == 0  # nothing is done twice
+    (row,) = status(empty)["maps"]
+    assert row == {**row, "map": kitchen_week.MAP, "pending": 0, "held": 0,
+                   "consolidated_until_ns": week.scenes[9].timestamp}
+
+
+def test_scenes_are_consolidated_in_time_order_whatever_order_they_were_stored_in(empty, week):
+    """Stored newest first but consolidated together: the pipeline takes them in time order,
+    so the belief is the one of the scenes in time order."""
+    scenes = week.scenes[:30]
+    IngestService(empty).ingest_batch(list(reversed(scenes)))
+    memory_pipeline(empty).drain(timeout=120)
+    live = canonical_belief(empty)
+    assert [e["time"] for e in live[1]] == sorted(e["time"] for e in live[1])
+    assert rebuilt(empty) == live
+
+
+def test_a_late_scene_rebuilds_its_map(empty, week):
+    """A scene older than the newest consolidated one of its map: the map is rebuilt, so the
+    belief is what consolidating all its scenes in time order gives."""
+    service = IngestService(empty)
+    scenes = week.scenes[:40]
+    late = scenes.pop(20)
+    service.ingest_batch(scenes, wait=120)
+    service.ingest(late, wait=120)
+    live = canonical_belief(empty)
+    assert any(e["scene_id"] == late.id for e in live[1])
+    assert rebuilt(empty) == live
+
+
+def test_the_belief_built_live_equals_the_rebuilt_one_with_lookups_in_between(empty, week):
+    """Lookups append names while scenes keep coming; identity decides on the evidence the
+    clusters arrived with, names sum every annotation: live == rebuilt, document for document."""
+    service = IngestService(empty)
+    for start in range(0, 90, 15):
+        results = service.ingest_batch(week.scenes[start:start + 15], wait=120)
+        for ids in [r for r in results if r.cluster_ids][::3]:  # as a lookup worker would
+            empty.add_annotation(ids.cluster_ids[0], WebLookup(
+                source="Goggles", service="simulated", category="product",
+                title=f"Lookup {start}"))
+    live = canonical_belief(empty)
+    assert any(f"lookup {start}" in o["names"] for o in live[0] for start in range(0, 90, 15))
+    assert rebuilt(empty) == live
+
+
+def test_the_demo_data_built_live_equals_the_rebuilt_belief(store, week):
+    """The real RoboSherlock dumps, the RGB-D samples and a kitchen week, each its own map."""
+    from percept_memory.cli import demo_sources
+
+    for name in (*BELIEF, "scenes", "clusters", "jobs"):
+        store.db[name].delete_many({})
+    for _source, scenes in demo_sources(days=2):
+        ingest_consolidated(store, scenes)
+    maps = set(store.db[MAPS].distinct("_id"))
+    assert kitchen_week.MAP in maps
+    assert len([m for m in maps if m.startswith("robosherlock/")]) == 2
+    assert any(m.startswith("rgbd/") for m in maps)
+    live = canonical_belief(store)
+    assert len(live[0]) > 20
+    assert rebuilt(store) == live
+
+
+# --- failures ----------------------------------------------------------------------------------
+
+
+class Failing:
+    """A stage that fails on the scenes it is told to (a bug, a bad document)."""
+
+    name = "failing"
+    belief = False
+
+    def __init__(self, bad: set):
+        self.bad = bad
+
+    def apply(self, scene_ids, map_name, session):
+        if self.bad & set(scene_ids):
+            raise ValueError("cannot digest this scene")
+
+    def reset(self, map_name):
+        pass
+
+
+def test_a_scene_that_keeps_failing_is_held_with_its_error_and_the_rest_go_on(empty, week):
+    scenes = week.scenes[:12]
+    service = IngestService(empty)
+    ids = service.ingest_batch(scenes)
+    bad = ids[4].scene_id
+    stages = [Consolidation(empty), Failing({bad})]
+    pipeline = Pipeline(empty, stages, backoff_s=0.01, max_attempts=3)
+    pipeline.drain(timeout=60)
+    report = status(empty)
+    (held,) = report["held"]
+    assert held["scene_id"] == str(bad) and held["attempts"] == 3
+    assert "failing: ValueError: cannot digest this scene" in held["error"]
+    assert report["maps"][0]["held"] == 1 and report["maps"][0]["pending"] == 0
+    consolidated = set(empty.db[EVENTS].distinct("scene_id"))
+    assert bad not in consolidated  # all or nothing: none of its stages' writes landed
+    assert {i.scene_id for i in ids} - {bad} <= consolidated | {
+        i.scene_id for i, s in zip(ids, scenes, strict=True) if not s.clusters}
+
+    stages[1].bad.clear()  # fixed: the held scene goes through, late, so its map is rebuilt
+    assert retry_held(empty) == 1
+    pipeline.drain(timeout=60)
+    assert not status(empty)["held"] and bad in set(empty.db[EVENTS].distinct("scene_id"))
+    live = canonical_belief(empty)
+    assert rebuilt(empty) == live
+
+
+def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, db_name):
+    from click.testing import CliRunner
+    from fastapi.testclient import TestClient
+
+    from percept_memory.cli import main
+    from percept_memory.memory.settings import Settings
+    from percept_memory.webui.app import create_app
+
+    IngestService(empty).ingest_batch(week.scenes[:5])
+    client = TestClient(create_app(empty, Settings(consolidator=False)))
+    body = client.get("/api/pipeline").json()
+    assert body["maps"][0]["pending"] == 5 and body["maps"][0]["consolidated_until"] is None
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    shown = CliRunner().invoke(main, ["pipeline", "--json"], env=env)
+    assert shown.exit_code == 0 and '"pending": 5' in shown.stdout
+
+    posted = client.post("/api/scenes?wait=belief",
+                         json=week.scenes[5].model_dump(mode="json", exclude={"id"}))
+    assert posted.status_code == 201 and posted.json()["belief"] == "current"
+    body = client.get("/api/pipeline").json()
+    assert body["maps"][0]["pending"] == 0
+    assert body["maps"][0]["consolidated_until_ns"] == week.scenes[5].timestamp
+    page = client.get("/pipeline")
+    assert page.status_code == 200 and kitchen_week.MAP in page.text
+
+
+# --- maps and coordinates ----------------------------------------------------------------------
+
+
+def test_observations_in_two_maps_are_never_one_object(empty):
+    base = 5_000_000_000_000_000_000
+    service = IngestService(empty)
+    for i, site in enumerate(("home", "lab")):
+        service.ingest(Scene(timestamp=base + i, robot="r", map=site, clusters=[thing(0.2, "red")],
+                             view_region=looking_at(0.0, 1.0)), wait=30)
+    objects = list(empty.db[OBJECTS].find())
+    assert sorted(o["map"] for o in objects) == ["home", "lab"]
+    assert {e["explanation"] for e in empty.db[EVENTS].find()} == {"appear"}
+    engine = QueryEngine(empty)
+    assert [o.map for o in engine.what_is_at(map="lab").objects] == ["lab"]
+
+
+def test_any_finite_coordinates_work(empty):
+    """UTM-sized and astronomically large coordinates: stored, consolidated, answered."""
+    base = 6_000_000_000_000_000_000
+    service = IngestService(empty)
+    for i, (x, y) in enumerate([(455_000.0, 5_400_000.0), (1e300, -1e300)]):
+        for step in range(2):
+            ids = service.ingest(Scene(
+                timestamp=base + 10 * i + step, robot="utm", map=f"far {i}",
+                clusters=[thing(x, "blue", y=y)], view_region=looking_at(x - 1, x + 1, y)),
+                wait=30)
+            assert ids.created
+    assert not status(empty)["held"]
+    explanations = [e["explanation"] for e in empty.db[EVENTS].find().sort("time")]
+    assert explanations == ["appear", "stay", "appear", "stay"]
+    (where,) = QueryEngine(empty).where_is(str(ids.cluster_ids[0]))
+    assert where.state == "present" and where.position == (1e300, -1e300, 0.8)
+
+
+# --- one writer per map, whoever dies --------------------------------------------------------
+
+
+def test_one_consolidator_per_map_and_a_stale_one_cannot_commit(empty, week):
+    IngestService(empty).ingest_batch(week.scenes[:3])
+    first, second = (Pipeline(empty, [Consolidation(empty)], lease_s=0.2) for _ in range(2))
+    lease = first._acquire(kitchen_week.MAP)
+    assert lease is not None and second._acquire(kitchen_week.MAP) is None
+    time.sleep(0.3)  # the first pauses past its lease: the second takes the map over
+    assert second._acquire(kitchen_week.MAP) is not None
+    entries = first._next(kitchen_week.MAP, 3)
+    with pytest.raises(LeaseLost):
+        first._apply(kitchen_week.MAP, lease["lease"]["token"], entries)
+    assert empty.db[EVENTS].count_documents({}) == 0  # fenced: nothing of it landed
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _consolidator(uri: str, db: str) -> subprocess.Popen:
+    env = {**os.environ, "MONGODB_URI": uri, "PMEM_DB": db, "PMEM_MAP_LEASE_S": "2"}
+    return subprocess.Popen([sys.executable, "-m", "percept_memory", "consolidate"], env=env,
+                            stderr=subprocess.DEVNULL)
+
+
+def _acknowledged(service: IngestService, scene: Scene):
+    """Ingest as a robot does: retry until the memory acknowledges the scene."""
+    deadline = time.monotonic() + 120
+    while True:
+        try:
+            return service.ingest(scene)
+        except Exception:  # the database is down: the scene was not acknowledged, send again
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
+def test_kill_9_of_the_consolidator_and_of_mongod_loses_nothing_and_doubles_nothing(
+        tmp_path, week):
+    """A robot streams scenes; the consolidator process is killed with SIGKILL, then mongod
+    is: afterwards every acknowledged scene is consolidated exactly once."""
+    mongod = EmbeddedMongod(tmp_path / "mongod", _free_port(), cache_gb=0.25, oplog_mb=64)
+    uri = mongod.start()
+    db = "crash"
+    client = MongoClient(uri, **CLIENT_OPTIONS, serverSelectionTimeoutMS=2000)
+    store = MemoryStore(client, db, gridfs_threshold=128 * 1024)
+    store.prepare()
+    service = IngestService(store)
+    consolidator = _consolidator(uri, db)
+    acknowledged = []
+    try:
+        for i, scene in enumerate(week.scenes[:150]):
+            acknowledged.append(_acknowledged(service, scene))
+            if i == 50:
+                consolidator.send_signal(signal.SIGKILL)
+                consolidator.wait()
+                consolidator = _consolidator(uri, db)
+            if i == 100:
+                os.kill(mongod.status()["pid"], signal.SIGKILL)
+                time.sleep(1)
+                mongod.start()
+        deadline = time.monotonic() + 180
+        while store.db[OUTBOX].count_documents({}) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert store.db[OUTBOX].count_documents({}) == 0
+        clusters = [c for ids in acknowledged for c in ids.cluster_ids]
+        events = list(store.db[EVENTS].find({"cluster_id": {"$ne": None}}, {"cluster_id": 1}))
+        assert sorted(e["cluster_id"] for e in events) == sorted(clusters)  # each exactly once
+        observed = sum(o["observations"] for o in store.db[OBJECTS].find())
+        assert observed == len(clusters)
+        assert store.clusters.count_documents({"object_id": None}) == 0
+        assert store.db["jobs"].count_documents({}) == len(clusters)
+        live = canonical_belief(store)
+    finally:
+        consolidator.send_signal(signal.SIGTERM)
+        consolidator.wait(timeout=30)
+    assert rebuilt(store) == live
+    client.close()
+    mongod.stop()
+
+
+def test_a_consolidator_process_stops_cleanly_on_sigterm(mongo_uri, db_name):
+    process = _consolidator(mongo_uri, db_name)
+    time.sleep(2)
+    process.send_signal(signal.SIGTERM)
+    assert process.wait(timeout=30) == 0
+

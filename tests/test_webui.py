@@ -491,6 +491,7 @@ def test_every_page_sends_a_content_security_policy(client, week, hostile):
         assert response.headers["content-type"].startswith("text/html"), path
         policy = response.headers["content-security-policy"]
         assert "default-src 'none'" in policy and "script-src" not in policy, path
+        assert response.headers["referrer-policy"] == "no-referrer", path
 
 
 @pytest.mark.parametrize("path, status", [

@@ -4,6 +4,7 @@ naming it, never a 500).
 
 Every page sends a Content-Security-Policy that allows nothing but this site's own images and
 style sheet; the live page alone may also run this site's scripts and open its event stream.
+No page sends a Referer to the links it leads to.
 Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
 """
 
@@ -20,9 +21,18 @@ from fastapi.templating import Jinja2Templates
 from . import render
 
 HERE = Path(__file__).parent
-CSP = ("default-src 'none'; img-src 'self'; style-src 'self'; form-action 'self'; "
-       "base-uri 'none'; frame-ancestors 'none'")
-SCRIPT_CSP = f"{CSP}; script-src 'self'; connect-src 'self'"
+
+
+def content_security_policy(**allowed: str) -> str:
+    """This site's Content-Security-Policy, with the directives named (as script_src=...) set."""
+    directives = {"default-src": "'none'", "img-src": "'self'", "style-src": "'self'",
+                  "form-action": "'self'", "base-uri": "'none'", "frame-ancestors": "'none'"}
+    directives.update({name.replace("_", "-"): value for name, value in allowed.items()})
+    return "; ".join(f"{name} {value}" for name, value in directives.items())
+
+
+CSP = content_security_policy()
+SCRIPT_CSP = content_security_policy(script_src="'self'", connect_src="'self'")
 """The policy of a page that runs this site's own scripts (static files, never inline)."""
 LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
                # the names of the scene's images, not their pixels
@@ -50,7 +60,8 @@ def page(request: Request, template: str, context: dict, status: int = 200,
 
 
 def headers(policy: str = CSP) -> dict[str, str]:
-    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff"}
+    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff",
+            "Referrer-Policy": "no-referrer"}
 
 
 def parse_id(text: str, kind: str) -> ObjectId:

@@ -717,6 +717,12 @@ def test_only_the_live_page_may_run_scripts(client):
     assert script.status_code == 200 and "EventSource" in script.text
 
 
+def test_the_site_has_an_icon(client):
+    icon = client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.content.startswith(b"\x00\x00\x01\x00")  # ICO
+    assert icon.headers["content-type"] == "image/vnd.microsoft.icon"
+
+
 def test_live_events_resume_from_a_bad_token_as_from_now(store):
     for token in (None, "nonsense", "00" * 600):
         stream = live._watch(store, token)

@@ -3,8 +3,8 @@ the error page, and the parsing of URL parameters (each bad one refused with a 4
 naming it, never a 500).
 
 Every page sends a Content-Security-Policy that allows nothing but this site's own images and
-style sheet; the live page alone may also run this site's scripts and open its event stream.
-No page sends a Referer to the links it leads to.
+style sheet; the live page and the API page (Swagger UI) alone may also run this site's scripts
+and fetch from it. No page sends a Referer to the links it leads to.
 Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
 """
 
@@ -34,6 +34,9 @@ def content_security_policy(**allowed: str) -> str:
 CSP = content_security_policy()
 SCRIPT_CSP = content_security_policy(script_src="'self'", connect_src="'self'")
 """The policy of a page that runs this site's own scripts (static files, never inline)."""
+API_DOCS_CSP = content_security_policy(script_src="'self'", connect_src="'self'",
+                                       img_src="'self' data:")
+"""The policy of the API page (/docs): Swagger UI draws its icons from data: URLs."""
 LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
                # the names of the scene's images, not their pixels
                "images": {"$map": {"input": {"$objectToArray": {"$ifNull": ["$images", {}]}},

@@ -106,7 +106,14 @@ def test_a_configured_token_guards_writes(store):
     assert guarded.get("/api/schema/scene").status_code == 200  # reading needs no token
 
 
-def test_the_api_docs_need_no_cdn(client):
-    page = client.get("/docs").text
-    assert "/static/swagger/swagger-ui-bundle.js" in page and "cdn" not in page.lower()
-    assert client.get("/static/swagger/swagger-ui-bundle.js").status_code == 200
+def test_the_api_docs_need_no_cdn_and_no_inline_script(client):
+    docs = client.get("/docs")
+    assert "/static/ui/swagger/swagger-ui-bundle.js" in docs.text and "cdn" not in docs.text.lower()
+    assert "<script>" not in docs.text and 'data-openapi-url="/openapi.json"' in docs.text
+    policy = docs.headers["content-security-policy"]
+    for directive in ("default-src 'none'", "script-src 'self'", "style-src 'self'",
+                      "img-src 'self' data:", "connect-src 'self'", "frame-ancestors 'none'"):
+        assert f"{directive};" in f"{policy};", directive
+    assert docs.headers["referrer-policy"] == "no-referrer"
+    for asset in ("swagger-ui-bundle.js", "swagger-ui.css", "init.js"):
+        assert client.get(f"/static/ui/swagger/{asset}").status_code == 200, asset

@@ -395,6 +395,27 @@ def test_annotators_and_enrichment_in_the_browser(page, url):
     shot(page, "11-enrichment")
 
 
+def test_the_api_docs_list_every_operation_and_try_them(page, url, client):
+    """Swagger UI reads the app's OpenAPI (3.1), shows one block per operation and sends a
+    request from one, all within the page's Content-Security-Policy (the `page` fixture)."""
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    paths = client.get("/openapi.json").json()["paths"]
+    page.goto(url + "/")
+    page.get_by_role("link", name="API", exact=True).click()
+    clusters = page.locator(".opblock-get:has([data-path='/api/clusters'])")
+    expect(page.locator(".opblock-post:has([data-path='/api/scenes'])")).to_be_visible()
+    expect(clusters).to_be_visible()
+    expect(page.locator(".opblock")).to_have_count(sum(map(len, paths.values())))
+    expect(page.get_by_text("valid version field")).to_have_count(0)
+    clusters.locator(".opblock-summary-control").click()
+    clusters.get_by_role("button", name="Try it out").click()
+    clusters.get_by_role("button", name="Execute").click()
+    expect(clusters.locator(".live-responses-table tbody .response-col_status")).to_have_text("200")
+    assert not errors, errors
+    shot(page, "12-api-docs")
+
+
 TABBABLE = """() => Array.from(document.querySelectorAll(
     'a[href], button, input:not([type=hidden]), select, textarea, summary, [tabindex]'))
   .filter(e => e.tabIndex >= 0 && !e.disabled && e.getClientRects().length > 0)
@@ -489,6 +510,7 @@ def test_every_page_sends_a_content_security_policy(client, week, hostile):
         assert response.headers["content-type"].startswith("text/html"), path
         policy = response.headers["content-security-policy"]
         assert "default-src 'none'" in policy and "script-src" not in policy, path
+        assert response.headers["referrer-policy"] == "no-referrer", path
 
 
 @pytest.mark.parametrize("path, status", [
@@ -712,6 +734,12 @@ def test_only_the_live_page_may_run_scripts(client):
     assert "script-src 'self'" in policy and "connect-src 'self'" in policy
     script = client.get("/static/ui/live.js")
     assert script.status_code == 200 and "EventSource" in script.text
+
+
+def test_the_site_has_an_icon(client):
+    icon = client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.content.startswith(b"\x00\x00\x01\x00")  # ICO
+    assert icon.headers["content-type"] == "image/vnd.microsoft.icon"
 
 
 def test_live_events_resume_from_a_bad_token_as_from_now(store):

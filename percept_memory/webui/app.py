@@ -14,11 +14,8 @@ from typing import Annotated, Any, Literal
 from fastapi import FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
-from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
-from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException
-from swagger_ui_bundle import swagger_ui_path
 
 from percept_memory.ingest.jobs import State, job_report
 from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
@@ -29,6 +26,7 @@ from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
 from .export_api import export_router
+from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
 
@@ -65,10 +63,9 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         title="percept-memory",
         description="Long-term spatio-temporal memory for robot perception.",
         version="0.1.0",
-        docs_url=None,  # served below with Swagger UI from the package: no CDN
+        docs_url=None,  # served below with the Swagger UI in static/swagger: no CDN
         redoc_url=None,
     )
-    app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
     service = IngestService(store, pipeline=pipeline)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
@@ -89,13 +86,8 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         return error_response(422, "the request is not valid", problems)
 
     @app.get("/docs", include_in_schema=False)
-    def api_docs() -> HTMLResponse:
-        return get_swagger_ui_html(
-            openapi_url=app.openapi_url, title="percept-memory API",
-            swagger_js_url="/static/swagger/swagger-ui-bundle.js",
-            swagger_css_url="/static/swagger/swagger-ui.css",
-            swagger_favicon_url="/static/swagger/favicon-32x32.png",
-        )
+    def api_docs(request: Request) -> HTMLResponse:
+        return page(request, "docs.html", {"openapi_url": app.openapi_url}, policy=API_DOCS_CSP)
 
     @app.get("/api/schema/scene", summary="JSON Schema of a scene (interchange format v1)")
     def scene_json_schema() -> dict[str, Any]:

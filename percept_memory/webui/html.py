@@ -3,7 +3,8 @@ the error page, and the parsing of URL parameters (each bad one refused with a 4
 naming it, never a 500).
 
 Every page sends a Content-Security-Policy that allows nothing but this site's own images and
-style sheet; the live page alone may also run this site's scripts and open its event stream.
+style sheet; the live page and the API page (Swagger UI) alone may also run this site's scripts
+and fetch from it. No page sends a Referer to the links it leads to.
 Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
 """
 
@@ -20,10 +21,22 @@ from fastapi.templating import Jinja2Templates
 from . import render
 
 HERE = Path(__file__).parent
-CSP = ("default-src 'none'; img-src 'self'; style-src 'self'; form-action 'self'; "
-       "base-uri 'none'; frame-ancestors 'none'")
-SCRIPT_CSP = f"{CSP}; script-src 'self'; connect-src 'self'"
+
+
+def content_security_policy(**allowed: str) -> str:
+    """This site's Content-Security-Policy, with the directives named (as script_src=...) set."""
+    directives = {"default-src": "'none'", "img-src": "'self'", "style-src": "'self'",
+                  "form-action": "'self'", "base-uri": "'none'", "frame-ancestors": "'none'"}
+    directives.update({name.replace("_", "-"): value for name, value in allowed.items()})
+    return "; ".join(f"{name} {value}" for name, value in directives.items())
+
+
+CSP = content_security_policy()
+SCRIPT_CSP = content_security_policy(script_src="'self'", connect_src="'self'")
 """The policy of a page that runs this site's own scripts (static files, never inline)."""
+API_DOCS_CSP = content_security_policy(script_src="'self'", connect_src="'self'",
+                                       img_src="'self' data:")
+"""The policy of the API page (/docs): Swagger UI draws its icons from data: URLs."""
 LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 1,
                # the names of the scene's images, not their pixels
                "images": {"$map": {"input": {"$objectToArray": {"$ifNull": ["$images", {}]}},
@@ -50,7 +63,8 @@ def page(request: Request, template: str, context: dict, status: int = 200,
 
 
 def headers(policy: str = CSP) -> dict[str, str]:
-    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff"}
+    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff",
+            "Referrer-Policy": "no-referrer"}
 
 
 def parse_id(text: str, kind: str) -> ObjectId:

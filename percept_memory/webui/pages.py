@@ -9,7 +9,7 @@ from __future__ import annotations
 from bson import ObjectId
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import HTMLResponse, Response
+from fastapi.responses import FileResponse, HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 
 from percept_memory.memory.errors import NotFound
@@ -34,11 +34,17 @@ from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
+CACHED = {"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"}
 
 
 def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
-    """Add the pages, their images, style sheet and scripts to the app."""
+    """Add the pages, their images, style sheets, scripts and icon to the app."""
     app.mount("/static/ui", StaticFiles(directory=HERE / "static"), name="ui-static")
+
+    @app.get("/favicon.ico", include_in_schema=False)
+    def favicon() -> FileResponse:
+        return FileResponse(HERE / "static" / "favicon.ico", headers=CACHED)
+
     engine = QueryEngine(store, settings)
     for router in (scene_log.routes(store), page_routes(store), history.routes(store),
                    search.routes(store, engine), belief_map.routes(store, engine),
@@ -123,8 +129,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
 async def _png(image: Image, max_side: int | None = None) -> Response:
     data = await run_in_threadpool(display_png, image, max_side)
-    return Response(data, media_type="image/png",
-                    headers={"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"})
+    return Response(data, media_type="image/png", headers=CACHED)
 
 
 def _boxes(scene: Scene) -> dict[str, list[tuple[int, ImageROI]]]:

@@ -27,22 +27,10 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
+from .errors import ApiError, error_response
 from .export_api import export_router
 from .pages import mount_pages
 from .queries import query_router
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, message: str, problems: list | None = None):
-        super().__init__(message)
-        self.status, self.message, self.problems = status, message, problems or []
-
-
-def error_response(status: int, message: str, problems: list | None = None) -> JSONResponse:
-    return JSONResponse(
-        {"error": {"status": status, "message": message, "problems": problems or []}},
-        status_code=status,
-    )
 
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
@@ -66,7 +54,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
-        return error_response(error.status_code, str(error.detail))
+        return error_response(error.status_code, str(error.detail), headers=error.headers)
 
     @app.exception_handler(RequestValidationError)
     async def _request_error(request: Request, error: RequestValidationError) -> JSONResponse:

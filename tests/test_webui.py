@@ -50,7 +50,7 @@ from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
 
-from .conftest import ROBOSHERLOCK
+from .conftest import LOCAL, ROBOSHERLOCK
 
 CHROMIUM = Path("/usr/bin/chromium")
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "test-output" / "screenshots"
@@ -116,7 +116,7 @@ def lookups(week) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def client(filled):
-    return TestClient(create_app(filled, Settings()))
+    return TestClient(create_app(filled, Settings()), base_url=LOCAL)
 
 
 @pytest.fixture(scope="module")

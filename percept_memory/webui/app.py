@@ -1,7 +1,8 @@
 """The FastAPI app. Every error is one JSON shape: {"error": {"status", "message", "problems"}}.
 
-Writes need `Authorization: Bearer <PMEM_TOKEN>` when a token is configured. Request bodies are
-read in chunks and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
+Writes need `Authorization: Bearer <PMEM_TOKEN>` when a token is configured; guard.py decides
+who may send requests at all (Host, Origin, JSON bodies only). Request bodies are read in chunks
+and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from percept_memory.queries.engine import QueryEngine
 
 from .errors import ApiError, error_response
 from .export_api import export_router
+from .guard import Guard
 from .pages import mount_pages
 from .queries import query_router
 
@@ -42,6 +44,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         docs_url=None,  # served below with Swagger UI from the package: no CDN
         redoc_url=None,
     )
+    app.add_middleware(Guard, settings=settings)  # who may talk to the app: guard.py
     app.mount("/static/swagger", StaticFiles(directory=swagger_ui_path), name="swagger")
     service = IngestService(store, after_store=[Consolidator(store), LookupEnqueuer(store)])
     max_bytes = int(settings.max_request_mb * 2**20)

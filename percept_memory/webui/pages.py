@@ -112,8 +112,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
 async def _png(image: Image, max_side: int | None = None) -> Response:
     data = await run_in_threadpool(display_png, image, max_side)
-    return Response(data, media_type="image/png",
-                    headers={"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"})
+    return Response(data, media_type="image/png", headers={"Cache-Control": "max-age=3600"})
 
 
 def _boxes(scene: Scene) -> dict[str, list[tuple[int, ImageROI]]]:

@@ -7,9 +7,11 @@ from __future__ import annotations
 import json
 
 import pytest
+from click.testing import CliRunner
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
 
+from percept_memory import cli
 from percept_memory.memory.settings import Settings
 from percept_memory.webui.app import create_app
 from percept_memory.webui.guard import served_settings
@@ -135,6 +137,24 @@ def test_serving_beyond_loopback_without_a_token_makes_one_up(store, capsys):
         "authorization": f"Bearer {settings.token}"}).status_code == 201
     assert client.get("/api/jobs").status_code == 200  # reads stay open
     assert client.post("/api/clusters", json={"text": "cereal"}).status_code == 200
+
+
+def test_pmem_serve_on_all_interfaces_needs_a_token_for_writes(mongo_uri, db_name, monkeypatch):
+    """The CLI's wiring, with uvicorn.run replaced by a few requests: nothing listens here."""
+    answers = []
+
+    def run(app, **options):
+        client = TestClient(app, base_url=SERVER)
+        answers.append(client.post("/api/scenes", content=scene_body(6),
+                                   headers={"content-type": "application/json"}).status_code)
+        answers.append(client.get("/api/jobs").status_code)
+
+    monkeypatch.setattr(cli.uvicorn, "run", run)
+    result = CliRunner().invoke(cli.main, ["serve", "--host", "0.0.0.0"],
+                                env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
+    assert result.exit_code == 0, result.output
+    assert answers == [401, 200]
+    assert "Authorization: Bearer " in result.stderr
 
 
 @pytest.mark.parametrize("host", ["127.0.0.1", "127.0.0.2", "localhost", "::1"])

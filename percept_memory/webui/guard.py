@@ -31,7 +31,7 @@ from percept_memory.memory.settings import Settings
 from .errors import error_response
 
 LOOPBACK_HOSTS = "127.0.0.1,localhost,::1"
-READS = {"GET", "HEAD", "OPTIONS"}
+SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}  # HTTP's "safe" methods: they change nothing
 HEADERS = {"Referrer-Policy": "no-referrer", "X-Content-Type-Options": "nosniff"}
 
 
@@ -69,7 +69,7 @@ class Guard:
             return error_response(400, f"this server does not answer for the host {host!r}; "
                                        "PMEM_ALLOWED_HOSTS lists those it does")
         method, path = scope["method"], scope["path"]
-        if method in READS or not path.startswith("/api/"):
+        if method in SAFE_METHODS or not path.startswith("/api/"):
             return None
         origin = headers.get("origin")
         if origin is not None and origin.lower() not in {f"{scope['scheme']}://{host}".lower(),

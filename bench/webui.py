@@ -74,7 +74,8 @@ def search_pages(args: argparse.Namespace) -> dict:
                           console=Console(stderr=True), transient=True) as progress:
                 build(store, args.search_clusters, progress)
         built = time.perf_counter() - start
-        client = TestClient(create_app(store, Settings(db=store.db.name)))
+        client = TestClient(create_app(store, Settings(db=store.db.name)),
+                            base_url="http://127.0.0.1")
         pages = {name: {**timed(client, path := "/search?" + urlencode(query), args.repeat),
                         "hits": client.get(path).text.count('class="hit"')}
                  for name, query in SEARCHES.items()}
@@ -100,7 +101,8 @@ def main() -> None:
         scenes = [big, *others]
         for start in range(0, len(scenes), BATCH):  # one transaction per batch
             store.put_scenes(scenes[start:start + BATCH])
-        client = TestClient(create_app(store, Settings(db=store.db.name)))
+        client = TestClient(create_app(store, Settings(db=store.db.name)),
+                            base_url="http://127.0.0.1")
         result = {
             "benchmark": "webui",
             "scene_page_20_clusters": timed(client, f"/scenes/{big.id}", args.repeat),

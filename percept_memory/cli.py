@@ -46,6 +46,7 @@ from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
 from percept_memory.queries.params import from_params, is_list
 from percept_memory.webui.app import create_app
+from percept_memory.webui.guard import served_settings
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -289,7 +290,8 @@ def serve(settings: Settings, host: str, port: int) -> None:
     """Run the web app and the HTTP API (OpenAPI at /docs)."""
     with MemoryStore.open(settings) as store:
         click.echo(f"percept-memory at http://{host}:{port}/docs", err=True)
-        uvicorn.run(create_app(store, settings), host=host, port=port, log_level="warning")
+        uvicorn.run(create_app(store, served_settings(settings, host)), host=host, port=port,
+                    log_level="warning")
 
 
 @main.command()
@@ -314,7 +316,8 @@ def demo(settings: Settings, days: int, serving: bool, host: str, port: int, wor
             echo_summary(source, ingest_with_progress(store, source, labelled(source, scenes)))
         if serving:
             click.echo(f"percept-memory demo at http://{host}:{port}/docs  (Ctrl-C stops)")
-            uvicorn.run(create_app(store, settings), host=host, port=port, log_level="warning")
+            uvicorn.run(create_app(store, served_settings(settings, host)), host=host,
+                        port=port, log_level="warning")
         elif running:
             counts = wait_for_lookups(store, running)
             click.echo(f"lookups: {counts['done']} done, {counts['failed']} failed")

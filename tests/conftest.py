@@ -44,6 +44,9 @@ def db_name(request: pytest.FixtureRequest, mongo_uri: str) -> Iterator[str]:
         client.drop_database(name)
 
 
+LOCAL = "http://127.0.0.1"
+"""The base URL of TestClients: a Host the app answers (guard.py), unlike the default testserver."""
+
 # --- the memory store and the real RoboSherlock data ------------------------------------------
 
 SHARED = Path(os.environ.get("PMEM_SHARED", Path(__file__).resolve().parents[2] / "shared"))

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from percept_memory.memory.settings import Settings
 from percept_memory.webui.app import create_app
 
+from .conftest import LOCAL
 from .test_ingest import valid_scene
 from .test_store import snapshot
 
@@ -19,7 +20,7 @@ STAMP = 1_700_000_000_000_000_000
 
 @pytest.fixture(scope="module")
 def client(store):
-    return TestClient(create_app(store, Settings(max_request_mb=1)))
+    return TestClient(create_app(store, Settings(max_request_mb=1)), base_url=LOCAL)
 
 
 def test_schema_describes_every_annotation_kind(client):
@@ -96,7 +97,7 @@ def test_bodies_over_the_limit_get_413(client, store):
 
 
 def test_a_configured_token_guards_writes(store):
-    guarded = TestClient(create_app(store, Settings(token="s3cret")))
+    guarded = TestClient(create_app(store, Settings(token="s3cret")), base_url=LOCAL)
     scene = valid_scene(seed=8, timestamp=STAMP + 50)
     assert guarded.post("/api/scenes", json=scene).status_code == 401
     wrong = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer nope"})

@@ -61,7 +61,7 @@ from percept_memory.memory.types import (
     WebLookup,
 )
 
-from .conftest import ROBOSHERLOCK
+from .conftest import LOCAL, ROBOSHERLOCK
 
 KITCHEN = next((ROBOSHERLOCK / "samples" / "kitchen").glob("rgb_*.png"))
 MUESLI_BOX = (298, 96, 80, 100)  # x, y, w, h in the kitchen frame
@@ -511,7 +511,7 @@ def test_failed_jobs_show_their_error_in_the_cli_and_the_api(fresh, mongo_uri, d
                                backend="http"))
     finally:
         server.close()
-    client = TestClient(create_app(fresh, Settings()))
+    client = TestClient(create_app(fresh, Settings()), base_url=LOCAL)
     body = client.get("/api/jobs", params={"state": "failed"}).json()
     assert body["counts"] == {"queued": 0, "running": 0, "done": 0, "failed": 1}
     (job,) = body["jobs"]

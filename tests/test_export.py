@@ -35,7 +35,7 @@ from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
 from percept_memory.webui.app import create_app
 
-from .conftest import ROBOSHERLOCK
+from .conftest import LOCAL, ROBOSHERLOCK
 
 PNP = ROBOSHERLOCK / "mongodump" / "PnP09ObjSymbolicGTFixed"
 CLASSIFICATION = "pm.annotation.Classification"
@@ -270,7 +270,7 @@ def test_the_limit_takes_the_oldest(memory):
 
 @pytest.fixture(scope="module")
 def client(memory):
-    return TestClient(create_app(memory, Settings()))
+    return TestClient(create_app(memory, Settings()), base_url=LOCAL)
 
 
 def test_the_api_streams_the_same_zip_by_get_and_post(client, memory):

@@ -17,6 +17,8 @@ from percept_memory.queries.engine import QUERIES, QueryEngine
 from percept_memory.webui.app import create_app
 from percept_memory.webui.queries import PATHS
 
+from .conftest import LOCAL
+
 # a valid query of every endpoint, as query-string pairs
 VALID = {
     "clusters": {"text": "Prinles", "region": "shelf", "limit": "3"},
@@ -38,7 +40,7 @@ def path(name: str) -> str:
 
 @pytest.fixture(scope="module")
 def client(store, kitchen):
-    return TestClient(create_app(store, Settings()))
+    return TestClient(create_app(store, Settings()), base_url=LOCAL)
 
 
 @pytest.mark.parametrize("name", VALID)

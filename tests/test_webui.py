@@ -48,7 +48,8 @@ from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
 
-from .conftest import ROBOSHERLOCK, ingest_consolidated
+from .conftest import LOCAL, ROBOSHERLOCK, ingest_consolidated
+from .test_store import snapshot
 
 CHROMIUM = Path("/usr/bin/chromium")
 SCREENSHOTS = Path(__file__).resolve().parents[1] / "test-output" / "screenshots"
@@ -114,7 +115,7 @@ def lookups(week) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def client(filled):
-    return TestClient(create_app(filled, Settings()))
+    return TestClient(create_app(filled, Settings()), base_url=LOCAL)
 
 
 @pytest.fixture(scope="module")
@@ -382,6 +383,49 @@ def test_live_page_shows_new_scenes_without_reload(page, url, store):
     expect(row.locator("td.clusters")).to_have_text("3")
     expect(rows).to_have_count(live.SHOWN)
     shot(page, "9-live")
+
+
+SEND_ANYWAY = """async ([target, body]) => {
+    const tries = [
+        {body},                                            // text/plain;charset=UTF-8
+        {body: new Blob([body])},                          // no Content-Type at all
+        {body: new URLSearchParams({scene: body})},        // a form
+        {body, headers: {"Content-Type": "application/json"}},  // needs a preflight
+        {body, mode: "no-cors"},
+    ];
+    for (const init of tries) {
+        try { await fetch(target, {method: "POST", ...init}); } catch (refused) {}
+    }
+}"""
+"""What a page may send to any server: each fetch reaches the server (the JSON one only its
+preflight), even though the page cannot read the answer."""
+
+
+def test_pages_of_other_origins_cannot_store_scenes(page, url, store, tmp_path):
+    """A page on another loopback port, a data: URL and a file (`Origin: null`) post a valid
+    scene every way a page can without the server's consent: nothing is stored."""
+    scene = synthetic.scene(np.random.default_rng(8), HOSTILE_STAMP - 7200 * 10**9,
+                            clusters=1, robot="mallory-web").model_dump_json(by_alias=True)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        elsewhere = f"http://127.0.0.1:{probe.getsockname()[1]}/"
+    page.route(elsewhere, lambda route: route.fulfill(content_type="text/html",
+                                                       body="<title>elsewhere</title>"))
+    opened = tmp_path / "opened.html"
+    opened.write_text("<title>a downloaded page</title>")
+    before = snapshot(store)
+    for origin in (elsewhere, "data:text/html,<title>data</title>", opened.as_uri()):
+        page.goto(origin)
+        page.evaluate(SEND_ANYWAY, [url + "/api/scenes", scene])
+    assert snapshot(store) == before
+    assert store.scenes.count_documents({"robot": "mallory-web"}) == 0
+
+    page.goto(url + "/api/jobs")  # a page of the server itself may ask in JSON, not in text
+    answers = page.evaluate("""async () => [
+        (await fetch("/api/clusters", {method: "POST", body: '{"limit": 1}',
+                                       headers: {"Content-Type": "application/json"}})).status,
+        (await fetch("/api/clusters", {method: "POST", body: '{"limit": 1}'})).status]""")
+    assert answers == [200, 415]
 
 
 def test_annotators_and_enrichment_in_the_browser(page, url):

@@ -48,7 +48,19 @@ class Settings(BaseSettings):
         description="PMEM_GRIDFS_THRESHOLD: binary values above this many bytes go to GridFS",
     )
     token: str | None = Field(
-        default=None, description="PMEM_TOKEN: write token for the HTTP API"
+        default=None, min_length=1,
+        description="PMEM_TOKEN: write token for the HTTP API; unset = none on loopback, "
+        "a generated one (printed) when serving beyond it",
+    )
+    allowed_hosts: str | None = Field(
+        default=None,
+        description="PMEM_ALLOWED_HOSTS: Host names served, comma-separated, any port; "
+        "unset = 127.0.0.1, localhost, ::1 and the --host served on",
+    )
+    allowed_origins: str = Field(
+        default="",
+        description="PMEM_ALLOWED_ORIGINS: other origins (scheme://host:port, comma-separated) "
+        "whose pages may send POSTs to the API",
     )
     max_request_mb: float = Field(
         default=64, gt=0,

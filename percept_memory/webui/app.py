@@ -1,7 +1,8 @@
 """The FastAPI app. Every error is one JSON shape: {"error": {"status", "message", "problems"}}.
 
-Writes need `Authorization: Bearer <PMEM_TOKEN>` when a token is configured. Request bodies are
-read in chunks and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
+Writes need `Authorization: Bearer <PMEM_TOKEN>` when a token is configured; guard.py decides
+who may send requests at all (Host, Origin, JSON bodies only). Request bodies are read in chunks
+and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 """
 
 from __future__ import annotations
@@ -25,23 +26,12 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
+from .errors import ApiError, error_response
 from .export_api import export_router
+from .guard import Guard
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
-
-
-class ApiError(Exception):
-    def __init__(self, status: int, message: str, problems: list | None = None):
-        super().__init__(message)
-        self.status, self.message, self.problems = status, message, problems or []
-
-
-def error_response(status: int, message: str, problems: list | None = None) -> JSONResponse:
-    return JSONResponse(
-        {"error": {"status": status, "message": message, "problems": problems or []}},
-        status_code=status,
-    )
 
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
@@ -66,6 +56,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         docs_url=None,  # served below with the Swagger UI in static/swagger: no CDN
         redoc_url=None,
     )
+    app.add_middleware(Guard, settings=settings)  # who may talk to the app: guard.py
     service = IngestService(store, pipeline=pipeline)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
@@ -77,7 +68,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
-        return error_response(error.status_code, str(error.detail))
+        return error_response(error.status_code, str(error.detail), headers=error.headers)
 
     @app.exception_handler(RequestValidationError)
     async def _request_error(request: Request, error: RequestValidationError) -> JSONResponse:

@@ -63,8 +63,7 @@ def page(request: Request, template: str, context: dict, status: int = 200,
 
 
 def headers(policy: str = CSP) -> dict[str, str]:
-    return {"Content-Security-Policy": policy, "X-Content-Type-Options": "nosniff",
-            "Referrer-Policy": "no-referrer"}
+    return {"Content-Security-Policy": policy}  # nosniff and the rest: guard.py, on all
 
 
 def parse_id(text: str, kind: str) -> ObjectId:

@@ -34,7 +34,7 @@ from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
-CACHED = {"Cache-Control": "max-age=3600", "X-Content-Type-Options": "nosniff"}
+CACHED = {"Cache-Control": "max-age=3600"}  # nosniff and the rest: guard.py, on all
 
 
 def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:

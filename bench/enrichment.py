@@ -40,7 +40,6 @@ from rich.progress import Progress
 from scratch import print_json, scratch_store
 
 from percept_memory.ingest import kitchen_week, rgbd, synthetic
-from percept_memory.ingest.jobs import LookupEnqueuer
 from percept_memory.ingest.lookup_cache import HashIndex
 from percept_memory.ingest.phash import crop_phash, hamming
 from percept_memory.ingest.service import IngestService
@@ -87,8 +86,8 @@ def lookups_per_s(uri: str, slots: list[int], jobs_per_slot: int, progress: Prog
         jobs = max(20, jobs_per_slot * concurrency)
         task = progress.add_task(f"lookups, {concurrency} in flight", total=None)
         with scratch_store(MONGODB_URI=uri) as store:
-            IngestService(store, after_store=[LookupEnqueuer(store)]).ingest_batch(
-                noise_scenes(jobs // 4, 4, seed=concurrency))
+            IngestService(store).ingest_batch(noise_scenes(jobs // 4, 4, seed=concurrency),
+                                              wait=600)
             counts, seconds = asyncio.run(work_off(Settings(
                 MONGODB_URI=uri, db=store.db.name), concurrency))
         progress.remove_task(task)
@@ -104,8 +103,10 @@ def ingest_rate(uri: str, scenes: int, progress: Progress, runs: int = 3) -> dic
     image = cv2.imread(str(KITCHEN)) if KITCHEN else None
     rng = np.random.default_rng(7)
     with scratch_store(MONGODB_URI=uri) as store:
-        service = IngestService(store, after_store=[LookupEnqueuer(store)])
-        service.ingest_batch([synthetic.scene(rng, i, 6, image) for i in range(200)])  # backlog
+        service = IngestService(store)
+        backlog = [synthetic.scene(rng, i, 6, image) for i in range(200)]
+        list(service.ingest_stream((str(i), s) for i, s in enumerate(backlog)))
+        service.pipeline.drain(timeout=600)  # a backlog of lookups
         stamp = [10**15]
 
         def run() -> float:
@@ -143,7 +144,7 @@ def kitchen_week_cache(uri: str, days: int, progress: Progress) -> dict:
     task = progress.add_task(f"kitchen week ({days} days) lookups", total=None)
     with scratch_store(MONGODB_URI=uri) as store:
         scenes = kitchen_week.generate(days=days).scenes
-        IngestService(store, after_store=[LookupEnqueuer(store)]).ingest_batch(scenes)
+        IngestService(store).ingest_batch(scenes, wait=600)
         counts, seconds = asyncio.run(work_off(Settings(MONGODB_URI=uri, db=store.db.name),
                                                64))
     progress.remove_task(task)

@@ -1,7 +1,7 @@
 """Identity resolution benchmark: Blodow's synthetic protocol (thesis 6.3); prints JSON.
 
 Every look is a Scene fed through the real ingest service (IngestService with the
-Consolidator as its after-store stage, on the configured or embedded mongod, in a scratch
+consolidation stage of the memory pipeline, on the configured or embedded mongod, in a scratch
 database dropped afterwards): stored, consolidated into `objects` and `events`, the view given
 as the scene's declared view region; the decisions are read back from the events. `--direct`
 runs the decision core alone (identity.resolve, the belief kept here), for tuning. Per noise
@@ -29,7 +29,7 @@ Ground truth. A belief object stands for the real object of its last observation
 observation of object t: if no belief object stands for t, the truth is "appear" (matched to
 nothing): its first put. Otherwise it is that belief object b (also when b was seen to
 disappear: the memory keeps such objects as candidates, out of view, so one brought back can
-be recognised, as the Consolidator does), and the explanation compares the truth now with
+be recognised, as the consolidation does), and the explanation compares the truth now with
 the truth when b was last observed: same place and look -> stay, other place -> move, other
 look -> newview; both moved and changed look (possible through unseen steps) is
 indistinguishable from a new object and counts as appear (and b then as persist /
@@ -64,7 +64,7 @@ from scratch import print_json, scratch_store
 
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory import schema
-from percept_memory.memory.consolidation import Consolidator
+from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.identity import (
     Calibration,
     Decision,
@@ -75,6 +75,7 @@ from percept_memory.memory.identity import (
     gaussian,
     resolve,
 )
+from percept_memory.memory.pipeline import Pipeline
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import (
     Annotation,
@@ -252,7 +253,7 @@ class ThroughIngest:
     `objects` and `events` (memory/consolidation.py), with the view as the scene's declared
     view region; the decisions are read back from the events."""
 
-    name = "percept_memory.ingest.IngestService -> memory.consolidation.Consolidator"
+    name = "percept_memory.ingest.IngestService -> memory.pipeline -> memory.consolidation"
 
     def __init__(self, params: Parameters, store: MemoryStore) -> None:
         self.params, self.store = params, store
@@ -261,14 +262,15 @@ class ThroughIngest:
 
     def start_level(self) -> None:
         self._forget(schema.CALIBRATION)
-        self.consolidator = Consolidator(self.store, self.params)
-        self.service = IngestService(self.store, after_store=[self.consolidator])
+        pipeline = Pipeline(self.store, [Consolidation(self.store, self.params)])
+        self.service = IngestService(self.store, pipeline=pipeline)
 
     def start_world(self) -> None:
         self._forget()  # a new world: the sensor's calibration stays
 
     def _forget(self, *more: str) -> None:
-        for name in (schema.SCENES, schema.CLUSTERS, schema.OBJECTS, schema.EVENTS, *more):
+        for name in (schema.SCENES, schema.CLUSTERS, schema.OBJECTS, schema.EVENTS,
+                     schema.OUTBOX, schema.MAPS, *more):
             self.store.db[name].delete_many({})
 
     def decide(self, new: list[Observation], known: list[Known], region) -> list[Decision]:
@@ -279,7 +281,7 @@ class ThroughIngest:
             view_region=SpatialVolume(box_min=(x0, y0, -1.0), box_max=(x1, y1, 1.0)),
             clusters=[Cluster(annotations=[Location(position=o.position), *o.evidence])
                       for o in new])
-        ids = self.service.ingest(scene)
+        ids = self.service.ingest(scene, wait=60)
         events = list(self.store.db[schema.EVENTS].find({"scene_id": ids.scene_id}))
         by_cluster = {e["cluster_id"]: e for e in events if e["cluster_id"] is not None}
         unseen = {e["object_id"]: e for e in events if e["cluster_id"] is None}
@@ -361,7 +363,7 @@ class Run:
         new = [self.observe(o) for o in seen]
         known = [Known(k, b.last, inside(region, b.last.position))
                  for k, b in self.belief.items()]
-        # as in the Consolidator, objects seen to disappear remain candidates, out of view
+        # as in the consolidation, objects seen to disappear remain candidates, out of view
         candidates = known + [Known(k, b.last, False) for k, b in self.gone.items()]
         start = time.perf_counter()
         decisions = self.decider.decide(new, candidates, region)

@@ -17,6 +17,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("converter.py", ["--clusters", "20", "--scenes", "6"], {"codec", "store"}),
     ("ingest.py", ["--scenes", "12", "--batch", "4", "--http-scenes", "8"],
      {"in_process", "http"}),
+    ("pipeline.py", ["--days", "1", "--synthetic-scenes", "10", "--lag-scenes", "10",
+                     "--rate", "20"], {"throughput", "belief_lag_over_http"}),
     ("identity.py", ["--scenes-per-level", "40", "--levels", "0.025"], {"levels"}),
     ("queries.py", ["--clusters", "3000", "--samples", "3"], {"queries"}),
     ("export.py", ["--clusters", "300", "--sizes", "100,300", "--formats", "imagefolder"],

@@ -37,7 +37,7 @@ from percept_memory.memory.types import (
 )
 from percept_memory.queries.engine import QueryEngine
 
-from .conftest import ingest_consolidated
+from .conftest import LOCAL, ingest_consolidated
 
 BELIEF = (OBJECTS, EVENTS, OUTBOX, MAPS, CALIBRATION)
 
@@ -223,7 +223,7 @@ def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, 
     from percept_memory.webui.app import create_app
 
     IngestService(empty).ingest_batch(week.scenes[:5])
-    client = TestClient(create_app(empty, Settings(consolidator=False)))
+    client = TestClient(create_app(empty, Settings(consolidator=False)), base_url=LOCAL)
     body = client.get("/api/pipeline").json()
     assert body["maps"][0]["pending"] == 5 and body["maps"][0]["consolidated_until"] is None
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}

@@ -93,6 +93,7 @@ def filled(store, week, sample, hostile):
     ingest_consolidated(store, week.scenes)
     store.put_scenes([sample, hostile])  # not consolidated: clusters without an object
     store.outbox.delete_many({"_id": {"$in": [sample.id, hostile.id]}})
+    store.db.jobs.delete_many({})  # those the pipeline queued, replaced by jobs in every state
     store.db.jobs.insert_many(lookups(week))
     return store
 
@@ -298,7 +299,8 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     page.get_by_role("link", name="Map", exact=True).click()
     page.locator("input[name=at]").fill(str(t // 10**9))
     page.get_by_role("button", name="Show").click()
-    expect(page).to_have_url(f"{url}/map?at={t // 10**9}")
+    expect(page.locator("select[name=map]")).to_have_value(kitchen_week.MAP)
+    expect(page).to_have_url(f"{url}/map?map={kitchen_week.MAP}&at={t // 10**9}")
     expect(page.locator("h1 small")).to_contain_text(render.time_of(t))
     for object_id in present:
         expect(page.locator(f'a.object.present[data-object="{object_id}"]')).to_have_count(1)

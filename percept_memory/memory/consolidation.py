@@ -48,6 +48,8 @@ DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
+# what deciding reads of a candidate object (its names only once it is seen again)
+CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1}
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
@@ -104,6 +106,10 @@ class Consolidation:
         decisions = resolve(new, known, self.params, calibration)
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in scene.clusters}
+        seen_again = [d.object for d in decisions if d.object is not None and d.key in clusters]
+        for doc in self.objects.find({"_id": {"$in": seen_again}}, {"label_weights": 1},
+                                     session=session):
+            by_id[doc["_id"]]["label_weights"] = doc.get("label_weights", {})
         objects, events, links = [], [], []
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
@@ -162,24 +168,24 @@ class Consolidation:
         view = View(scene)
         bounds = view.bounds()
         if bounds is not None:
-            for doc in self.objects_near(scene.map, bounds, session):
+            for doc in self.objects_near(scene.map, bounds, session, CANDIDATE_FIELDS):
                 if view.sees(_vec(doc.get("position"))):
                     in_sight.append((doc, True))
         seen = [doc["_id"] for doc, _ in in_sight]
-        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, session=session
-                                   ).sort(RECENT).limit(self.max_unseen_candidates)
+        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, CANDIDATE_FIELDS,
+                                   session=session).sort(RECENT).limit(self.max_unseen_candidates)
         unseen = [(doc, False) for doc in recent]
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
 
-    def objects_near(self, map_name: str, bounds, session=None) -> Cursor:
+    def objects_near(self, map_name: str, bounds, session=None, fields=None) -> Cursor:
         """The objects of a map believed present or hidden whose x, y lie in a box
         ((x0, y0), (x1, y1)), by the index on their place."""
         (x0, y0), (x1, y1) = bounds
         query = {"map": map_name, "x": {"$gte": x0, "$lte": x1}, "y": {"$gte": y0, "$lte": y1},
                  "state": {"$ne": "disappeared"}}
-        return self.objects.find(query, session=session).hint("map_place")
+        return self.objects.find(query, fields, session=session).hint("map_place")
 
 
 def _vec(value) -> tuple | None:

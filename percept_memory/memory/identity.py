@@ -29,6 +29,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -124,27 +125,41 @@ def gaussian(distance: float, sigma: float) -> float:
 def appearance(a: Sequence, b: Sequence, floor: float) -> float | None:
     """The geometric mean of the similarities of every evidence type both observations have
     (thesis 6.1.2), each at least `floor`; None when they share no comparable type."""
-    return _appearance(a, _by_type(b), floor)
+    return _appearance(_by_type(a), _by_type(b), floor)
 
 
 def _by_type(evidence: Sequence) -> dict[type, list]:
+    """The evidence that can be compared, by type (in order of first appearance)."""
     grouped: dict[type, list] = {}
     for item in evidence:
-        grouped.setdefault(type(item), []).append(item)
+        if _similarity(type(item)) is not None:
+            grouped.setdefault(type(item), []).append(item)
     return grouped
 
 
-def _appearance(a: Sequence, b: dict[type, list], floor: float) -> float | None:
+@cache
+def _similarity(kind: type) -> Callable | None:
+    """The similarity of a type, or None when it compares nothing (the base's default)."""
+    similarity = getattr(kind, "similarity", None)
+    return None if similarity is None or similarity is Annotation.similarity else similarity
+
+
+def _appearance(a: dict[type, list], b: dict[type, list], floor: float) -> float | None:
     log_sum, count = 0.0, 0
-    for item in a:  # each piece of evidence counts with its best match of the same type
-        similarity: Callable | None = getattr(type(item), "similarity", None)
-        if similarity is None or type(item) not in b:
+    for kind, items in a.items():
+        others = b.get(kind)
+        if others is None:
             continue
-        values = [v for v in (similarity(item, other) for other in b[type(item)])
-                  if v is not None]
-        if values:
-            log_sum += math.log(min(max(float(max(values)), floor), 1.0))
-            count += 1
+        similarity = _similarity(kind)
+        for item in items:  # each piece of evidence counts with its best match of its type
+            best = -1.0
+            for other in others:
+                value = similarity(item, other)
+                if value is not None and value > best:
+                    best = value
+            if best >= 0.0:
+                log_sum += math.log(min(max(float(best), floor), 1.0))
+                count += 1
     return math.exp(log_sum / count) if count else None
 
 
@@ -284,8 +299,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     calibration = calibration or Calibration.prior(params)
     # the cues of every pair, then their odds at once
     grouped = [_by_type(candidate.last.evidence) for candidate in known]
-    looks = np.array([[_appearance(observation.evidence, evidence, params.evidence_floor)
-                       for evidence in grouped] for observation in new], dtype=float)
+    looks = np.array([[_appearance(evidence, other, params.evidence_floor) for other in grouped]
+                      for evidence in map(_by_type, (o.evidence for o in new))], dtype=float)
     places = np.array([[proximity(observation.position, candidate.last.position,
                                   params.proximity_sigma) for candidate in known]
                        for observation in new], dtype=float)

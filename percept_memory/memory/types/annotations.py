@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import re
+from functools import lru_cache
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
@@ -62,8 +63,10 @@ def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
 _WORD = re.compile(r"[^\W_]+")
 
 
-def _words(text: str) -> set[str]:
-    return set(_WORD.findall(text.casefold()))
+@lru_cache(maxsize=65536)
+def _words(text: str) -> frozenset[str]:
+    """The words of a text (kept: identity compares the same texts again and again)."""
+    return frozenset(_WORD.findall(text.casefold()))
 
 
 @stored_type("pm.annotation.Location")

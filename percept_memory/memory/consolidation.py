@@ -104,6 +104,7 @@ class Consolidation:
                  for o, seen in believed if o["last_cluster"] in last]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params, calibration)
+        self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in scene.clusters}
         seen_again = [d.object for d in decisions if d.object is not None and d.key in clusters]

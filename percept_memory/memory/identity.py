@@ -125,7 +125,8 @@ def gaussian(distance: float, sigma: float) -> float:
 def appearance(a: Sequence, b: Sequence, floor: float) -> float | None:
     """The geometric mean of the similarities of every evidence type both observations have
     (thesis 6.1.2), each at least `floor`; None when they share no comparable type."""
-    return _appearance(_by_type(a), _by_type(b), floor)
+    value = float(looks([_by_type(a)], [_by_type(b)], floor)[0, 0])
+    return None if math.isnan(value) else value
 
 
 def _by_type(evidence: Sequence) -> dict[type, list]:
@@ -144,23 +145,37 @@ def _similarity(kind: type) -> Callable | None:
     return None if similarity is None or similarity is Annotation.similarity else similarity
 
 
-def _appearance(a: dict[type, list], b: dict[type, list], floor: float) -> float | None:
-    log_sum, count = 0.0, 0
-    for kind, items in a.items():
-        others = b.get(kind)
-        if others is None:
-            continue
-        similarity = _similarity(kind)
-        for item in items:  # each piece of evidence counts with its best match of its type
-            best = -1.0
-            for other in others:
-                value = similarity(item, other)
-                if value is not None and value > best:
-                    best = value
-            if best >= 0.0:
-                log_sum += math.log(min(max(float(best), floor), 1.0))
-                count += 1
-    return math.exp(log_sum / count) if count else None
+def similarities(kind: type, a: list, b: list) -> np.ndarray:
+    """The similarity of every pair of items of one type, NaN where they do not compare: the
+    type's own `similarities` when it has one (numeric types, vectorised), else pair by pair."""
+    batch = getattr(kind, "similarities", None)
+    if batch is not None:
+        return np.asarray(batch(a, b), dtype=float)
+    pair = _similarity(kind)
+    return np.array([[pair(x, y) for y in b] for x in a], dtype=float).reshape(len(a), len(b))
+
+
+def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: float
+          ) -> np.ndarray:
+    """The appearance similarity of every (new, known) pair of observations, their evidence
+    grouped by type: per type one similarity matrix; each piece of new evidence counts with
+    its best match of its type on the other side; NaN where a pair shares no comparable type."""
+    log_sum, count = np.zeros((len(new), len(known))), np.zeros((len(new), len(known)))
+    shared = {kind for group in new for kind in group} & {kind for group in known for kind in group}
+    for kind in sorted(shared, key=lambda k: (k.__module__, k.__qualname__)):
+        rows = [(i, item) for i, group in enumerate(new) for item in group.get(kind, ())]
+        cols = [(j, item) for j, group in enumerate(known) for item in group.get(kind, ())]
+        values = similarities(kind, [item for _, item in rows], [item for _, item in cols])
+        best = np.full((len(rows), len(known)), np.nan)
+        for c, (j, _) in enumerate(cols):
+            best[:, j] = np.fmax(best[:, j], values[:, c])
+        compared = ~np.isnan(best)
+        logs = np.log(np.clip(np.where(compared, best, 1.0), floor, 1.0))
+        owners = np.array([i for i, _ in rows])
+        np.add.at(log_sum, owners, logs)
+        np.add.at(count, owners, compared)
+    with np.errstate(invalid="ignore"):
+        return np.where(count > 0, np.exp(log_sum / np.maximum(count, 1)), np.nan)
 
 
 def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
@@ -298,13 +313,12 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
     # the cues of every pair, then their odds at once
-    grouped = [_by_type(candidate.last.evidence) for candidate in known]
-    looks = np.array([[_appearance(evidence, other, params.evidence_floor) for other in grouped]
-                      for evidence in map(_by_type, (o.evidence for o in new))], dtype=float)
+    looked = looks([_by_type(o.evidence) for o in new],
+                   [_by_type(k.last.evidence) for k in known], params.evidence_floor)
     places = np.array([[proximity(observation.position, candidate.last.position,
                                   params.proximity_sigma) for candidate in known]
                        for observation in new], dtype=float)
-    look_odds = calibration.look.odds(looks.reshape(len(new), len(known)))
+    look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
     place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
@@ -340,12 +354,12 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
-    _learn(calibration, decisions[:len(new)], assigned, looks, places, params)
+    _learn(calibration, decisions[:len(new)], assigned, looked, places, params)
     return decisions
 
 
 def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
-           looks: np.ndarray, places: np.ndarray, params: Parameters) -> None:
+           looked: np.ndarray, places: np.ndarray, params: Parameters) -> None:
     """Teach the calibration with the decisions (soft EM): a stay shows how alike and how
     near one object seen twice is, each cue's value counted by how sure the current model is
     that it belongs to the same object rather than to a turned (newview) or moved one, so a
@@ -353,8 +367,8 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
     explained observation shows two different objects."""
     memory = params.memory
     for i, decision in enumerate(decisions):
-        for j in range(looks.shape[1]):
-            look = None if np.isnan(looks[i, j]) else float(looks[i, j])
+        for j in range(looked.shape[1]):
+            look = None if np.isnan(looked[i, j]) else float(looked[i, j])
             place = None if np.isnan(places[i, j]) else float(places[i, j])
             if assigned.get(i) == j:
                 if decision.explanation is Explanation.STAY:

@@ -60,6 +60,41 @@ def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
     return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in shared))
 
 
+def _pairwise(a: list, b: list, kind, prepare, combine) -> np.ndarray:
+    """A similarity matrix computed block by block: items compare only with items of the same
+    `kind` (e.g. the same histogram shape), `prepare` turns each into a vector (None: nothing to
+    compare) and `combine` compares two stacks of them; NaN where nothing compares."""
+    out = np.full((len(a), len(b)), np.nan)
+    groups: dict = {}
+    for side, items in enumerate((a, b)):
+        for index, item in enumerate(items):
+            vector = prepare(item)
+            if vector is not None:
+                groups.setdefault(kind(item), ([], []))[side].append((index, vector))
+    for rows, cols in groups.values():
+        if rows and cols:
+            block = combine(np.stack([v for _, v in rows]), np.stack([v for _, v in cols]))
+            out[np.ix_([i for i, _ in rows], [j for j, _ in cols])] = block
+    return out
+
+
+def _one(matrix: np.ndarray) -> float | None:
+    value = float(matrix[0, 0])
+    return None if math.isnan(value) else value
+
+
+def _sqrt_distribution(histogram) -> np.ndarray | None:
+    p = np.clip(histogram.histogram.astype(float).ravel(), 0, None)
+    total = p.sum()
+    return np.sqrt(p / total) if total > 0 else None
+
+
+def _unit_vector(feature) -> np.ndarray | None:
+    u = feature.vector.astype(float).ravel()
+    norm = np.linalg.norm(u)
+    return u / norm if norm > 0 else None
+
+
 _WORD = re.compile(r"[^\W_]+")
 
 
@@ -162,13 +197,14 @@ class ColorHistogram(Annotation):
 
     @staticmethod
     def similarity(a: ColorHistogram, b: ColorHistogram) -> float | None:
-        if a.space != b.space or a.histogram.shape != b.histogram.shape:
-            return None
-        p = np.clip(a.histogram.astype(float).ravel(), 0, None)
-        q = np.clip(b.histogram.astype(float).ravel(), 0, None)
-        if p.sum() <= 0 or q.sum() <= 0:
-            return None
-        return float(min(1.0, np.sqrt(p / p.sum() * q / q.sum()).sum()))
+        return _one(ColorHistogram.similarities([a], [b]))
+
+    @staticmethod
+    def similarities(a: list[ColorHistogram], b: list[ColorHistogram]) -> np.ndarray:
+        """Bhattacharyya overlap of every pair at once (sqrt p . sqrt q of the normalised
+        histograms): identity compares every new observation with every candidate."""
+        return _pairwise(a, b, lambda h: (h.space, h.histogram.shape), _sqrt_distribution,
+                         lambda p, q: np.minimum(p @ q.T, 1.0))
 
 
 @stored_type("pm.annotation.FeatureVector")
@@ -180,13 +216,13 @@ class FeatureVector(Annotation):
 
     @staticmethod
     def similarity(a: FeatureVector, b: FeatureVector) -> float | None:
-        if a.name != b.name or a.vector.shape != b.vector.shape:
-            return None
-        u, v = a.vector.astype(float).ravel(), b.vector.astype(float).ravel()
-        norm = np.linalg.norm(u) * np.linalg.norm(v)
-        if norm == 0:
-            return None
-        return float(np.clip(u @ v / norm, 0.0, 1.0))
+        return _one(FeatureVector.similarities([a], [b]))
+
+    @staticmethod
+    def similarities(a: list[FeatureVector], b: list[FeatureVector]) -> np.ndarray:
+        """Cosine of every pair at once (0 for opposite directions)."""
+        return _pairwise(a, b, lambda f: (f.name, f.vector.shape), _unit_vector,
+                         lambda u, v: np.clip(u @ v.T, 0.0, 1.0))
 
 
 @stored_type("pm.annotation.Text")

@@ -539,15 +539,18 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
     query = model_from_options(ExportQuery, given)
     with MemoryStore.open(settings) as store:
         export = Export(store, query, settings)
+        if not export.total:
+            raise click.ClickException(export.summary.why_empty())
         with progress_bar(f"export {query.format}") as bar:
             task = bar.add_task("clusters", total=export.total)
             try:
                 summary = export.save(out, lambda done: bar.advance(task, done))
             except FileExistsError as error:
                 raise click.ClickException(str(error)) from None
-    skipped = ", ".join(f"{count} {reason}" for reason, count in sorted(summary.skipped.items()))
+    if not summary.exported:
+        raise click.ClickException(f"{summary.why_empty()} (see {out}'s manifest.json)")
     click.echo(f"exported {summary.exported} clusters to {out}"
-               + (f" (skipped: {skipped})" if skipped else ""))
+               + (f"; skipped: {summary.skipped_text()}" if summary.skipped else ""))
 
 
 main.add_command(click.Command(

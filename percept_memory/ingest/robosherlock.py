@@ -62,7 +62,8 @@ from pydantic import ValidationError
 from pymongo import MongoClient
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
-from percept_memory.ingest.service import SourceError, in_map
+from percept_memory.ingest.errors import SourceError
+from percept_memory.ingest.service import in_map
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,

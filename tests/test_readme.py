@@ -5,7 +5,7 @@ The demo is loaded once per session (`pmem demo --no-serve --workers 0`) into a 
 database of the test mongod; `pmem` is this checkout's, and `curl` talks to a `pmem serve` of
 that database on a free loopback port (the text's 127.0.0.1:8000 is rewritten to it). A line
 passes when it exits with 0 and prints something (`curl -o FILE`: writes a non-empty file; a
-zip holds at least one exported cluster). A Python line `expression  # 'value'` states a value:
+zip holds at least one exported cluster; a table none of its parts empty). A Python line `expression  # 'value'` states a value:
 it is checked. Only lines that cannot run in CI are skipped, each with its reason.
 """
 
@@ -145,7 +145,9 @@ def run_bash(example: Example, demo: dict, folder: Path) -> None:
     if written:
         check_written(folder / written[1], example)
     else:
-        assert done.stdout.strip() not in ("", "[]", "{}"), f"{example}: no answer"
+        answer = done.stdout.strip()
+        assert answer not in ("", "[]", "{}") and "(none)" not in answer, \
+            f"{example}: no answer\n{done.stdout}"
 
 
 def check_written(path: Path, example: Example) -> None:

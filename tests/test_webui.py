@@ -815,6 +815,18 @@ def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, p
     assert 'role="alert"' in response.text
 
 
+def test_a_scene_without_camera_images_opens_on_its_crops_and_where_they_are(client, week):
+    scene = week.scenes[3]
+    assert not scene.images and scene.clusters
+    body = client.get(f"/scenes/{scene.id}").text
+    crops, plan, log = (body.index(mark) for mark in (
+        'class="grid crops"', "Where the scene&#39;s clusters are on the map", "<h2>Log</h2>"))
+    assert crops < plan < log
+    for number, cluster in enumerate(scene.clusters, 1):
+        assert f'src="/img/clusters/{cluster.id}/crop" alt="crop of cluster {number}"' in body
+        assert f'<a href="#cluster-{number}" class="object" tabindex="-1">' in body
+
+
 def test_the_search_url_holds_only_the_fields_given(client):
     """The GET form sends every field, empty ones too: the page sends the browser on to the
     URL without them, to be shared."""

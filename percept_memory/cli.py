@@ -35,6 +35,12 @@ Settings come from these environment variables:
 {settings_help()}"""
 
 
+def example(*lines: str) -> str:
+    """A command's help epilog: how it is used (\\b keeps click from re-wrapping the lines)."""
+    heading = "Example:" if len(lines) == 1 else "Examples:"
+    return f"\b\n{heading}\n" + "\n".join(f"  {line}" for line in lines)
+
+
 class _Group(click.Group):
     """The top-level group: turns our expected failures into click's `Error: ...` exit."""
 
@@ -54,7 +60,8 @@ class _StderrHandler(logging.Handler):
         click.echo(prefix + record.getMessage(), err=True)
 
 
-@click.group(cls=_Group, help=HELP)
+@click.group(cls=_Group, help=HELP, epilog=example(
+    "pmem demo", 'pmem query where-is "the ketchup"', "pmem COMMAND --help"))
 @click.pass_context
 def main(ctx: click.Context) -> None:
     logger = logging.getLogger("percept_memory")
@@ -80,11 +87,6 @@ def _external_database(settings: Settings) -> bool:
             err=True,
         )
     return bool(settings.mongodb_uri)
-
-
-def example(*lines: str) -> str:
-    """A command's help epilog: how it is used (\\b keeps click from re-wrapping the lines)."""
-    return "\b\nExample:\n" + "\n".join(f"  {line}" for line in lines)
 
 
 @db.command(epilog=example("export MONGODB_URI=$(pmem db start)"))
@@ -489,10 +491,12 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
+    width = max((len(row["map"]) for row in report["maps"]), default=0)
     for row in report["maps"]:
         until = row["consolidated_until"] or "-"
-        click.echo(f"{row['map']:<32} consolidated until {until:<30} pending {row['pending']:>6}"
-                   f"  held {row['held']:>4}{'  rebuilding' if row['rebuilding'] else ''}")
+        click.echo(f"{row['map']:<{width}}  consolidated until {until:<30} "
+                   f"pending {row['pending']:>6}  held {row['held']:>4}"
+                   f"{'  rebuilding' if row['rebuilding'] else ''}")
     for held in report["held"]:
         click.echo(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
                    f"{held['attempts']} attempts: {held['error']}")

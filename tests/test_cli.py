@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
@@ -139,7 +140,7 @@ def test_every_command_shows_an_example_in_its_help():
     for path in commands(main, []):
         shown = CliRunner().invoke(main, [*path, "--help"])
         assert shown.exit_code == 0, path
-        example = shown.output.split("Example:\n", 1)[1].splitlines()[0].strip()
+        example = re.split(r"Examples?:\n", shown.output, maxsplit=1)[1].splitlines()[0].strip()
         assert example.startswith(("pmem ", "export MONGODB_URI=$(pmem", "PMEM_")), path
         assert " ".join(path) in example, path
 

@@ -5,8 +5,9 @@ The demo is loaded once per session (`pmem demo --no-serve --workers 0`) into a 
 database of the test mongod; `pmem` is this checkout's, and `curl` talks to a `pmem serve` of
 that database on a free loopback port (the text's 127.0.0.1:8000 is rewritten to it). A line
 passes when it exits with 0 and prints something (`curl -o FILE`: writes a non-empty file; a
-zip holds at least one exported cluster; a table none of its parts empty). A Python line `expression  # 'value'` states a value:
-it is checked. Only lines that cannot run in CI are skipped, each with its reason.
+zip holds at least one exported cluster; a table has no empty part). A Python line
+`expression  # 'value'` states a value: it is checked. Only lines that cannot run in CI are
+skipped, each with its reason.
 """
 
 from __future__ import annotations

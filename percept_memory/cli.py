@@ -3,50 +3,29 @@
 Results go to stdout (so `export MONGODB_URI=$(pmem db start)` works); progress, warnings and
 errors go to stderr. Expected failures print `Error: <what happened and what to do>` and exit
 with code 1, never a traceback.
+
+Conventions: what a command is about is its argument (a query's subject X, an import's folder,
+an export's format); where and when are options (`--region`, `--t`, `--after`); `--json`
+prints for scripts, else text for people; every command's help ends with an example. Modules
+are imported by the commands that use them, so that `pmem --help` and `pmem query` start fast
+(FastAPI, OpenCV and the demo's generator are not loaded for them).
 """
 
 from __future__ import annotations
 
-import asyncio
 import json
 import logging
 import os
-import signal
-import time
 from pathlib import Path
 from typing import Any
 
 import click
-import uvicorn
-from pydantic import BaseModel, TypeAdapter, ValidationError
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from pydantic import ValidationError
 
-from percept_memory.ingest import kitchen_week, rgbd, robosherlock
-from percept_memory.ingest.backends import BackendSetupError
-from percept_memory.ingest.jobs import STATES, job_report, requeue_failed
-from percept_memory.ingest.scene_log import read_scene_log
-from percept_memory.ingest.service import (
-    ImportSummary,
-    IngestError,
-    IngestService,
-    SourceError,
-    memory_pipeline,
-)
-from percept_memory.ingest.workers import run_worker, worker_processes
+from percept_memory.ingest.errors import BackendSetupError, IngestError, SourceError
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
-from percept_memory.memory.pipeline import Pipeline, request_rebuild, retry_held
-from percept_memory.memory.pipeline import status as pipeline_status
 from percept_memory.memory.settings import Settings, settings_help
-from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import Scene
-from percept_memory.queries.engine import QUERIES, QueryEngine
-from percept_memory.queries.export.model import ExportQuery
-from percept_memory.queries.export.run import Export
-from percept_memory.queries.params import from_params, is_list
-from percept_memory.webui.app import create_app
-from percept_memory.webui.guard import served_settings
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -54,6 +33,12 @@ Settings come from these environment variables:
 
 \b
 {settings_help()}"""
+
+
+def example(*lines: str) -> str:
+    """A command's help epilog: how it is used (\\b keeps click from re-wrapping the lines)."""
+    heading = "Example:" if len(lines) == 1 else "Examples:"
+    return f"\b\n{heading}\n" + "\n".join(f"  {line}" for line in lines)
 
 
 class _Group(click.Group):
@@ -75,7 +60,8 @@ class _StderrHandler(logging.Handler):
         click.echo(prefix + record.getMessage(), err=True)
 
 
-@click.group(cls=_Group, help=HELP)
+@click.group(cls=_Group, help=HELP, epilog=example(
+    "pmem demo", 'pmem query where-is "the ketchup"', "pmem COMMAND --help"))
 @click.pass_context
 def main(ctx: click.Context) -> None:
     logger = logging.getLogger("percept_memory")
@@ -103,7 +89,7 @@ def _external_database(settings: Settings) -> bool:
     return bool(settings.mongodb_uri)
 
 
-@db.command()
+@db.command(epilog=example("export MONGODB_URI=$(pmem db start)"))
 @click.pass_obj
 def start(settings: Settings) -> None:
     """Start the embedded mongod (or reuse the running one) and print its URI."""
@@ -111,7 +97,7 @@ def start(settings: Settings) -> None:
         click.echo(EmbeddedMongod.from_settings(settings).start())
 
 
-@db.command()
+@db.command(epilog=example("pmem db stop"))
 @click.pass_obj
 def stop(settings: Settings) -> None:
     """Shut the embedded mongod down cleanly."""
@@ -119,7 +105,7 @@ def stop(settings: Settings) -> None:
         EmbeddedMongod.from_settings(settings).stop()
 
 
-@db.command()
+@db.command(epilog=example("pmem db status --json"))
 @click.option("--json", "as_json", is_flag=True, help="Print the status as JSON.")
 @click.pass_obj
 def status(settings: Settings, as_json: bool) -> None:
@@ -147,11 +133,13 @@ def _readable(key: str, value: Any) -> str:
 # --- pmem info: what the memory holds ------------------------------------------------------------
 
 
-@main.command()
+@main.command(epilog=example("pmem info", "PMEM_DB=scratch pmem info --json"))
 @click.option("--json", "as_json", is_flag=True, help="Print the counts as JSON.")
 @click.pass_obj
 def info(settings: Settings, as_json: bool) -> None:
     """Show the database in use and how many documents and annotations of each type it holds."""
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         report = {
             "database": settings.db,
@@ -171,8 +159,17 @@ def info(settings: Settings, as_json: bool) -> None:
         click.echo("  (no annotations stored yet)")
 
 
-def progress_bar(label: str) -> Progress:
+def progress_bar(label: str):
     """The bar long operations show on stderr (stdout stays for their results)."""
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
     return Progress(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
                     TimeElapsedColumn(), console=Console(stderr=True), transient=True)
 
@@ -180,11 +177,12 @@ def progress_bar(label: str) -> Progress:
 # --- pmem import: bring percepts in -----------------------------------------------------------
 
 
-def ingest_with_progress(
-    store: MemoryStore, source: str, items, context: dict | None = None
-) -> ImportSummary:
+def ingest_with_progress(store, source: str, items, context: dict | None = None):
     """Feed (label, scene) items through the ingest service with a progress bar on stderr,
-    the memory pipeline consolidating them meanwhile; returns once their belief is current."""
+    the memory pipeline consolidating them meanwhile; returns the ImportSummary once their
+    belief is current."""
+    from percept_memory.ingest.service import ImportSummary, IngestService, memory_pipeline
+
     summary = ImportSummary()
     pipeline = memory_pipeline(store).start()
     try:
@@ -200,14 +198,14 @@ def ingest_with_progress(
     return summary
 
 
-def drain_with_progress(store: MemoryStore, pipeline: Pipeline) -> None:
+def drain_with_progress(store, pipeline) -> None:
     """Run the pipeline until no scene is pending, with a progress bar on stderr."""
     with progress_bar("belief") as bar:
         task = bar.add_task("scenes", total=pipeline.pending())
         pipeline.drain(progress=lambda done: bar.advance(task, done))
 
 
-def echo_summary(source: str, summary: ImportSummary) -> None:
+def echo_summary(source: str, summary) -> None:
     click.echo(f"{source}: {summary.scenes_new} new {_plural(summary.scenes_new, 'scene')}, "
                f"{summary.scenes_existing} stored before, {summary.clusters} clusters")
     for name, count in sorted(summary.types.items()):
@@ -227,18 +225,23 @@ def import_() -> None:
     """Bring percepts into the memory (scenes already stored are not duplicated)."""
 
 
-@import_.command(name="scene-log")
+@import_.command(name="scene-log", epilog=example("pmem import scene-log recordings/"))
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.pass_obj
 def import_scene_log(settings: Settings, folder: Path) -> None:
     """A folder of scenes in the interchange format v1 (see `pmem schema`)."""
+    from percept_memory.ingest.scene_log import read_scene_log
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         summary = ingest_with_progress(store, folder.name, read_scene_log(folder),
                                        {"folder": folder})
     echo_summary(str(folder), summary)
 
 
-@import_.command(name="robosherlock")
+@import_.command(name="robosherlock", epilog=example(
+    "pmem import robosherlock ../shared/data/robosherlock/mongodump/IJRRScenes",
+    "pmem import robosherlock --uri mongodb://robot:27017 --db PnP09 --map lab"))
 @click.argument("folder", required=False,
                 type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--uri", help="a live RoboSherlock MongoDB instead of a mongodump folder")
@@ -250,6 +253,9 @@ def import_scene_log(settings: Settings, folder: Path) -> None:
 def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None,
                         database: str | None, robot: str, map_name: str | None) -> None:
     """RoboSherlock's storage: a mongodump FOLDER, or a live database (--uri and --db)."""
+    from percept_memory.ingest import robosherlock
+    from percept_memory.memory.store import MemoryStore
+
     if (folder is None) == (uri is None) or (uri is not None and not database):
         raise click.UsageError("give a mongodump FOLDER, or --uri and --db")
     scenes = robosherlock.read_dump(folder, robot, map_name) if folder else \
@@ -260,41 +266,59 @@ def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None
     echo_summary(source, summary)
 
 
-@import_.command(name="rgbd")
+@import_.command(name="rgbd", epilog=example(
+    "pmem import rgbd ../shared/data/robosherlock/samples/kitchen --map lab"))
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
 @click.option("--map", "map_name", help="the map the scenes belong to  [default: rgbd/<folder>]")
 @click.pass_obj
 def import_rgbd(settings: Settings, folder: Path, robot: str, map_name: str | None) -> None:
     """RGB-D samples: PNG + depth PNG + viewpoint, or PNG + PCD (+ ground-truth .lbl)."""
+    from percept_memory.ingest import rgbd
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         scenes = rgbd.read_samples(folder, robot, map_name)
         summary = ingest_with_progress(store, folder.name, labelled(folder.name, scenes))
     echo_summary(str(folder), summary)
 
 
-@main.command()
+@main.command(epilog=example("pmem schema > scene.schema.json"))
 def schema() -> None:
     """Print the JSON Schema of a scene (interchange format v1)."""
+    from percept_memory.memory.types import Scene
+
     click.echo(json.dumps(Scene.model_json_schema(), indent=2))
 
 
 # --- pmem serve / pmem demo -------------------------------------------------------------------
 
 
-@main.command()
+def serve_app(store, settings: Settings, host: str, port: int) -> None:
+    """The web app and the HTTP API on host:port until Ctrl-C."""
+    import uvicorn
+
+    from percept_memory.webui.app import create_app
+    from percept_memory.webui.guard import served_settings
+
+    uvicorn.run(create_app(store, served_settings(settings, host)), host=host, port=port,
+                log_level="warning")
+
+
+@main.command(epilog=example("pmem serve --port 8080"))
 @click.option("--host", default="127.0.0.1", show_default=True)
 @click.option("--port", default=8000, show_default=True, type=int)
 @click.pass_obj
 def serve(settings: Settings, host: str, port: int) -> None:
     """Run the web app and the HTTP API (OpenAPI at /docs)."""
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         click.echo(f"percept-memory at http://{host}:{port}/docs", err=True)
-        uvicorn.run(create_app(store, served_settings(settings, host)), host=host, port=port,
-                    log_level="warning")
+        serve_app(store, settings, host, port)
 
 
-@main.command()
+@main.command(epilog=example("pmem demo", "PMEM_DB=scratch pmem demo --no-serve --workers 0"))
 @click.option("--days", default=7, show_default=True, help="days of the generated kitchen week")
 @click.option("--serve/--no-serve", "serving", default=True, show_default=True,
               help="serve the web app once the data is in")
@@ -311,20 +335,26 @@ def demo(settings: Settings, days: int, serving: bool, host: str, port: int, wor
     week, enrichment workers appending lookup results to the clusters as they come in, then
     the web app (with --no-serve: until the lookups are done). Running it again adds nothing
     that is there already."""
+    from percept_memory.ingest.workers import worker_processes
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store, worker_processes(workers, backend) as running:
         for source, scenes in demo_sources(days):
             echo_summary(source, ingest_with_progress(store, source, labelled(source, scenes)))
         if serving:
             click.echo(f"percept-memory demo at http://{host}:{port}/docs  (Ctrl-C stops)")
-            uvicorn.run(create_app(store, served_settings(settings, host)), host=host,
-                        port=port, log_level="warning")
+            serve_app(store, settings, host, port)
         elif running:
             counts = wait_for_lookups(store, running)
             click.echo(f"lookups: {counts['done']} done, {counts['failed']} failed")
 
 
-def wait_for_lookups(store: MemoryStore, workers: list) -> dict[str, int]:
+def wait_for_lookups(store, workers: list) -> dict[str, int]:
     """Jobs per state once none is queued or running, with a progress bar on stderr."""
+    import time
+
+    from percept_memory.ingest.jobs import job_report
+
     with progress_bar("lookups") as bar:
         task = bar.add_task("lookups", total=None)
         while True:
@@ -340,6 +370,8 @@ def wait_for_lookups(store: MemoryStore, workers: list) -> dict[str, int]:
 
 def demo_sources(days: int):
     """(name, scenes) of everything the demo loads: real data first, then the kitchen week."""
+    from percept_memory.ingest import kitchen_week, rgbd, robosherlock
+
     data = shared_data_dir()
     for folder in sorted((data / "samples").iterdir()):
         yield f"samples/{folder.name}", rgbd.read_samples(folder)
@@ -363,7 +395,7 @@ def shared_data_dir() -> Path:
 # --- pmem worker / pmem jobs: enrichment ---------------------------------------------------------
 
 
-@main.command()
+@main.command(epilog=example("pmem worker --backend catalogue --concurrency 8"))
 @click.option("--backend", type=click.Choice(["simulated", "catalogue", "http"]),
               help="the lookup backend  [default: PMEM_LOOKUP_BACKEND]")
 @click.option("--concurrency", type=click.IntRange(1),
@@ -375,6 +407,10 @@ def worker(settings: Settings, backend: str | None, concurrency: int | None, nic
     """Run lookup jobs until SIGTERM or Ctrl-C: each new cluster's crop is looked up (the
     shared pHash cache first) and the results appended to it. Start as many as you like, on
     any machine: they share the queue through leases."""
+    import asyncio
+
+    from percept_memory.ingest.workers import run_worker
+
     os.nice(nice)
     counts = asyncio.run(run_worker(settings, backend=backend, concurrency=concurrency))
     click.echo(f"worker stopped: {counts['done']} jobs done ({counts['cached']} from the cache), "
@@ -382,8 +418,11 @@ def worker(settings: Settings, backend: str | None, concurrency: int | None, nic
                f"{counts['released']} released", err=True)
 
 
-@main.command()
-@click.option("--state", type=click.Choice(STATES), help="list only jobs in this state")
+JOB_STATES = ("queued", "running", "done", "failed")  # ingest/jobs.py: STATES
+
+
+@main.command(epilog=example("pmem jobs --state failed --limit 5", "pmem jobs --retry-failed"))
+@click.option("--state", type=click.Choice(JOB_STATES), help="list only jobs in this state")
 @click.option("--limit", default=20, show_default=True, type=click.IntRange(0),
               help="how many of the latest jobs to list")
 @click.option("--retry-failed", is_flag=True, help="queue the failed jobs again first")
@@ -392,6 +431,9 @@ def worker(settings: Settings, backend: str | None, concurrency: int | None, nic
 def jobs(settings: Settings, state: str | None, limit: int, retry_failed: bool,
          as_json: bool) -> None:
     """The enrichment queue: jobs per state, and the latest jobs with their last error."""
+    from percept_memory.ingest.jobs import job_report, requeue_failed
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         if retry_failed:
             click.echo(f"{requeue_failed(store)} failed job(s) queued again", err=True)
@@ -411,12 +453,16 @@ def _outcome(outcome: dict) -> str:
     return f"{outcome.get('annotations', 0)} annotations ({outcome.get('backend')}, {how})"
 
 
-@main.command()
+@main.command(epilog=example("pmem reconsolidate"))
 @click.pass_obj
 def reconsolidate(settings: Settings) -> None:
     """Rebuild every map's objects and events from its stored scenes, in time order (after a
     change of the identity parameters): the same code as the live pipeline, so the same store
     always gives the same belief."""
+    from percept_memory.ingest.service import memory_pipeline
+    from percept_memory.memory.pipeline import request_rebuild
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         maps = request_rebuild(store)
         drain_with_progress(store, memory_pipeline(store, settings))
@@ -427,13 +473,17 @@ def reconsolidate(settings: Settings) -> None:
                f"{objects} objects, {events} events")
 
 
-@main.command(name="pipeline")
+@main.command(name="pipeline", epilog=example("pmem pipeline", "pmem pipeline --retry --json"))
 @click.option("--retry", is_flag=True, help="queue the held scenes again")
 @click.option("--json", "as_json", is_flag=True, help="print the report as JSON")
 @click.pass_obj
 def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     """How far each map's belief is: the newest consolidated scene, the scenes pending and
     held (a stage kept failing: their errors are listed), and who consolidates it."""
+    from percept_memory.memory.pipeline import retry_held
+    from percept_memory.memory.pipeline import status as pipeline_status
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         if retry:
             click.echo(f"{retry_held(store)} held scene(s) queued again", err=True)
@@ -441,21 +491,28 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
+    width = max((len(row["map"]) for row in report["maps"]), default=0)
     for row in report["maps"]:
         until = row["consolidated_until"] or "-"
-        click.echo(f"{row['map']:<32} consolidated until {until:<30} pending {row['pending']:>6}"
-                   f"  held {row['held']:>4}{'  rebuilding' if row['rebuilding'] else ''}")
+        click.echo(f"{row['map']:<{width}}  consolidated until {until:<30} "
+                   f"pending {row['pending']:>6}  held {row['held']:>4}"
+                   f"{'  rebuilding' if row['rebuilding'] else ''}")
     for held in report["held"]:
         click.echo(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
                    f"{held['attempts']} attempts: {held['error']}")
 
 
-@main.command()
+@main.command(epilog=example("PMEM_CONSOLIDATOR=false pmem serve &  pmem consolidate"))
 @click.pass_obj
 def consolidate(settings: Settings) -> None:
     """Run the memory pipeline until SIGTERM or Ctrl-C: consolidate stored scenes into the
     belief and queue their lookups. For deployments that run it apart from the web app
     (PMEM_CONSOLIDATOR=false); as many as you like: each map has one writer at a time."""
+    import signal
+
+    from percept_memory.ingest.service import memory_pipeline
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         pipeline = memory_pipeline(store, settings)
         for stopping in (signal.SIGTERM, signal.SIGINT):
@@ -464,11 +521,13 @@ def consolidate(settings: Settings) -> None:
     click.echo("consolidator stopped", err=True)
 
 
-@main.command()
+@main.command(epilog=example("pmem reindex"))
 @click.pass_obj
 def reindex(settings: Settings) -> None:
     """Recompute the search keys, scene summaries and vocabulary of everything stored (after
     an upgrade that changed them; the stored percepts themselves are not touched)."""
+    from percept_memory.memory.store import MemoryStore
+
     with MemoryStore.open(settings) as store:
         total = (store.clusters.estimated_document_count()
                  + store.scenes.estimated_document_count())
@@ -480,81 +539,158 @@ def reindex(settings: Settings) -> None:
 
 # --- pmem query: the query API on the command line -------------------------------------------
 
+SUBJECTS = ("x", "format")  # the fields that are a command's argument: what it is about
+EXAMPLES = {
+    "clusters": ("pmem query clusters --text cereal --region shelf --limit 5",
+                 "pmem query clusters --near 1.9,4.6,0.8 --k 3 --json"),
+    "where_is": ('pmem query where-is "the ketchup" --limit 1',),
+    "where_was": ("pmem query where-was pringles --after 2024-03-05",),
+    "last_seen": ("pmem query last-seen pringles",),
+    "what_is_at": ("pmem query what-is-at --map kitchen-week --region table "
+                   "--t 2024-03-06T08:30",),
+    "changes": ("pmem query changes --region table --t1 2024-03-06T07:00 "
+                "--t2 2024-03-06T10:00",),
+    "annotation_stats": ("pmem query annotation-stats --region shelf",),
+    "cooccurrence": ("pmem query cooccurrence pringles --by-hour",),
+    "timings": ("pmem query timings --robot pr2 --json",),
+}
 
-@main.group()
+
+class _Queries(click.Group):
+    """`pmem query`: one subcommand per query of the engine, made from its model when asked
+    for, so that commands which ask nothing do not import the query engine."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        from percept_memory.queries.engine import QUERIES
+
+        return [name.replace("_", "-") for name in QUERIES]
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        from percept_memory.queries.engine import QUERIES
+
+        name = cmd_name.replace("-", "_")
+        return _query_command(name, QUERIES[name][0]) if name in QUERIES else None
+
+
+@main.group(cls=_Queries)
 def query() -> None:
     """Ask the memory: clusters (text, space, time, annotation fields), where-is, where-was,
-    last-seen, what-is-at, changes, stats. Prints the answer as JSON; options are those of
-    the HTTP API's query string (see /docs)."""
+    last-seen, what-is-at, changes, stats. The subject (X) is the argument; places and times
+    are options, those of the HTTP API's query string (see /docs); times are ISO 8601 (UTC)
+    or nanoseconds. Prints text for people, or JSON with --json."""
 
 
-def model_params(model: type[BaseModel]) -> list[click.Parameter]:
-    """A model's fields as options (its required fields as arguments), to be read by the
-    same parser as the HTTP query string (model_from_options)."""
+def model_params(model) -> list[click.Parameter]:
+    """A model's fields as options (the subject as an argument), to be read by the same
+    parser as the HTTP query string (model_from_options)."""
+    from percept_memory.queries.params import is_list
+
     params: list[click.Parameter] = []
     for field, info in model.model_fields.items():
-        if info.is_required():
-            params.append(click.Argument([field]))
+        if field in SUBJECTS:
+            params.append(click.Argument([field], required=info.is_required()))
         elif info.annotation is bool:
             params.append(click.Option([f"--{field.replace('_', '-')}"], is_flag=True,
                                        default=None, help=info.description))
         else:
             params.append(click.Option([f"--{field.replace('_', '-')}", field],
+                                       required=info.is_required(),
                                        multiple=is_list(model, field), help=info.description))
     return params
 
 
-def model_from_options(model: type[BaseModel], given: dict[str, Any]) -> BaseModel:
+def model_from_options(model, given: dict[str, Any]):
+    from percept_memory.queries.params import from_params
+
     pairs = [(field, str(value).lower() if isinstance(value, bool) else str(value))
              for field, values in given.items() if values is not None
              for value in (values if isinstance(values, tuple) else (values,))]
     return from_params(model, pairs)
 
 
-def _query_command(name: str, model: type[BaseModel]) -> click.Command:
-    """A subcommand whose options are the query model's fields (its required first field an
-    argument), read by the same parser as the HTTP query string."""
-    params = model_params(model)
+def _query_command(name: str, model) -> click.Command:
+    """A subcommand whose parameters are the query model's fields, read by the same parser
+    as the HTTP query string."""
+    from percept_memory.queries.engine import QUERIES
 
     @click.pass_obj
-    def run(settings: Settings, **given: Any) -> None:
+    def run(settings: Settings, as_json: bool, **given: Any) -> None:
+        from percept_memory import answers
+        from percept_memory.memory.store import MemoryStore
+        from percept_memory.queries.engine import QueryEngine
+
         question = model_from_options(model, given)
         with MemoryStore.open(settings) as store:
             answer = getattr(QueryEngine(store, settings), name)(question)
-        click.echo(json.dumps(TypeAdapter(Any).dump_python(answer, mode="json"), indent=2))
+        if as_json:
+            click.echo(answers.as_json(answer))
+        elif answer == []:
+            click.echo("nothing matches", err=True)
+        else:
+            click.echo(answers.as_text(answer))
 
-    return click.Command(name.replace("_", "-"), callback=run, params=params,
-                         help=(QUERIES[name][1].__doc__ or "").strip().split("\n\n")[0])
-
-
-for _name, (_model, _plan) in QUERIES.items():
-    query.add_command(_query_command(_name, _model))
+    as_json = click.Option(["--json", "as_json"], is_flag=True,
+                           help="print the answer as JSON (times as ISO 8601 and in ns)")
+    return click.Command(name.replace("_", "-"), callback=run,
+                         params=[*model_params(model), as_json],
+                         help=(QUERIES[name][1].__doc__ or "").strip().split("\n\n")[0],
+                         epilog=example(*EXAMPLES[name]))
 
 
 # --- pmem export: training data ----------------------------------------------------------------
 
 
+class _ModelCommand(click.Command):
+    """A command whose parameters are made from a model when first needed (to parse its
+    arguments or show its help), so that listing it in `pmem --help` imports nothing."""
+
+    def __init__(self, *args: Any, make_params, **kwargs: Any):
+        super().__init__(*args, **kwargs)
+        self.make_params = make_params
+
+    def get_params(self, ctx: click.Context) -> list[click.Parameter]:
+        if self.make_params is not None:
+            self.params = [*self.make_params(), *self.params]
+            self.make_params = None
+        return super().get_params(ctx)
+
+
+def _export_params() -> list[click.Parameter]:
+    from percept_memory.queries.export.model import ExportQuery
+
+    return model_params(ExportQuery)
+
+
 @click.pass_obj
 def _export(settings: Settings, out: Path, **given: Any) -> None:
+    from percept_memory.memory.store import MemoryStore
+    from percept_memory.queries.export.model import ExportQuery
+    from percept_memory.queries.export.run import Export
+
     query = model_from_options(ExportQuery, given)
     with MemoryStore.open(settings) as store:
         export = Export(store, query, settings)
+        if not export.total:
+            raise click.ClickException(export.summary.why_empty())
         with progress_bar(f"export {query.format}") as bar:
             task = bar.add_task("clusters", total=export.total)
             try:
                 summary = export.save(out, lambda done: bar.advance(task, done))
             except FileExistsError as error:
                 raise click.ClickException(str(error)) from None
-    skipped = ", ".join(f"{count} {reason}" for reason, count in sorted(summary.skipped.items()))
+    if not summary.exported:
+        raise click.ClickException(f"{summary.why_empty()} (see {out}'s manifest.json)")
     click.echo(f"exported {summary.exported} clusters to {out}"
-               + (f" (skipped: {skipped})" if skipped else ""))
+               + (f"; skipped: {summary.skipped_text()}" if summary.skipped else ""))
 
 
-main.add_command(click.Command(
-    "export", callback=_export,
-    params=[*model_params(ExportQuery),
-            click.Option(["--out"], required=True, type=click.Path(path_type=Path),
+main.add_command(_ModelCommand(
+    "export", callback=_export, make_params=_export_params,
+    params=[click.Option(["--out"], required=True, type=click.Path(path_type=Path),
                          help="a .zip file, or a new folder")],
     help="Export the clusters a query selects as training data: FORMAT is coco, yolo, "
          "imagefolder or jsonl. The query options are those of `pmem query clusters`; each "
-         "export holds provenance.jsonl and manifest.json (see README: Export)."))
+         "export holds provenance.jsonl and manifest.json (see README: Export). Nothing "
+         "exported is an error that says why.",
+    epilog=example("pmem export coco --out kitchen.zip --region table",
+                   "pmem export imagefolder --out crops/ --label object --text ketchup")))

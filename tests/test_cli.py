@@ -1,11 +1,14 @@
-"""`pmem info` and the CLI's errors, against real MongoDB servers."""
+"""`pmem info`, the CLI's errors and conventions, against real MongoDB servers."""
 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
+import sys
 import time
 
+import click
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -123,3 +126,40 @@ def test_demo_loads_real_data_and_the_kitchen_week_once(mongo_uri, db_name):
     finally:
         with MongoClient(mongo_uri) as client:
             client.drop_database(env["PMEM_DB"])
+
+
+def test_every_command_shows_an_example_in_its_help():
+    def commands(group, path):
+        for name in group.list_commands(None):
+            command = group.get_command(None, name)
+            if isinstance(command, click.Group):
+                yield from commands(command, [*path, name])
+            else:
+                yield [*path, name]
+
+    for path in commands(main, []):
+        shown = CliRunner().invoke(main, [*path, "--help"])
+        assert shown.exit_code == 0, path
+        example = re.split(r"Examples?:\n", shown.output, maxsplit=1)[1].splitlines()[0].strip()
+        assert example.startswith(("pmem ", "export MONGODB_URI=$(pmem", "PMEM_")), path
+        assert " ".join(path) in example, path
+
+
+def test_the_cli_starts_without_the_web_app_opencv_or_the_demo_generator():
+    """`pmem --help` and `pmem query` must start fast: the heavy modules load in the commands
+    that need them."""
+    loaded = subprocess.run(
+        [sys.executable, "-c", "import sys; from percept_memory.cli import main; "
+         "main(['query', 'where-is', '--help'], standalone_mode=False); "
+         "print(' '.join(sys.modules))"], capture_output=True, text=True, check=True)
+    modules = set(loaded.stdout.split("\n")[-2].split())
+    assert not modules & {"fastapi", "uvicorn", "percept_memory.webui.app",
+                          "percept_memory.ingest.kitchen_week", "percept_memory.ingest.rgbd",
+                          "percept_memory.ingest.service", "scipy"}
+
+
+def test_job_states_are_those_of_the_queue():
+    from percept_memory.cli import JOB_STATES
+    from percept_memory.ingest.jobs import STATES
+
+    assert JOB_STATES == STATES

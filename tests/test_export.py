@@ -128,6 +128,20 @@ def test_coco_scene_images_carry_every_cluster_box_and_mask(memory, tmp_path, ki
         assert mask[y:y + h, x:x + w].all() and mask.sum() == w * h == annotation["area"]
 
 
+def test_by_default_coco_takes_scene_images_where_there_are_any_else_crops(memory):
+    """The kitchen week's scenes have crops and no camera image; the synthetic ones have one."""
+    _, archive = exported(memory, format="coco", robot=["pr2", "synth"])
+    coco = json.loads(archive.read("annotations.json"))
+    manifest = json.loads(archive.read("manifest.json"))
+    week = memory.clusters.count_documents({"search.robot": "pr2"})
+    synth = SYNTH_SCENES * SYNTH_CLUSTERS
+    assert manifest["images"] == "auto" and manifest["skipped"] == {}
+    assert len(coco["annotations"]) == manifest["exported"] == week + synth
+    assert len(coco["images"]) == week + SYNTH_SCENES
+    assert sorted(n for n in archive.namelist() if n.endswith(".png")) == sorted(
+        f"images/{image['file_name']}" for image in coco["images"])
+
+
 def test_pnp09_has_no_pixels_so_image_formats_skip_it_and_say_why(memory):
     for query in ({"format": "coco"}, {"format": "yolo", "images": "crops"},
                   {"format": "imagefolder"}):
@@ -298,6 +312,25 @@ def test_bad_export_queries_get_422_naming_the_problem(client, params, problem):
     assert problem in json.dumps(answer.json()["error"])
 
 
+def test_an_export_with_nothing_in_it_is_a_422_naming_why(client):
+    answer = client.get("/api/export", params={"format": "coco", "robot": "pnp09"})
+    assert answer.status_code == 422
+    assert answer.json()["error"]["message"] == (
+        "nothing exported: every selected cluster was skipped: 9 (no classification label)")
+    answer = client.post("/api/export", json={"format": "coco", "robot": ["nobody"]})
+    assert answer.status_code == 422
+    assert answer.json()["error"]["message"] == "nothing exported: the query selects no clusters"
+
+
+def test_the_search_pages_download_is_a_zip_with_annotations(client):
+    """The search form's export with its defaults (format coco, images and label as given)."""
+    answer = client.get("/api/export", params={"text": "cereal", "format": "coco",
+                                               "images": "", "label": "object"})
+    assert answer.status_code == 200
+    coco = json.loads(zipfile.ZipFile(io.BytesIO(answer.content)).read("annotations.json"))
+    assert coco["annotations"] and len(coco["images"]) == len(coco["annotations"])
+
+
 def test_a_query_that_cannot_run_is_refused_before_streaming(client):
     answer = client.post("/api/export", json={"format": "coco", "text": "!!"})
     assert answer.status_code == 422 and "no words" in answer.json()["error"]["message"]
@@ -318,3 +351,16 @@ def test_pmem_export_writes_a_zip_or_a_folder(memory, mongo_uri, db_name, tmp_pa
     assert len(list(folder.glob("*/*.png"))) == SYNTH_SCENES * SYNTH_CLUSTERS
     again = CliRunner().invoke(main, ["export", "imagefolder", "--out", str(folder)], env=env)
     assert again.exit_code == 1 and "not an empty folder" in again.output
+
+
+def test_pmem_export_of_nothing_fails_and_says_why(memory, mongo_uri, db_name, tmp_path):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    run = CliRunner().invoke(main, ["export", "coco", "--robot", "pnp09",
+                                    "--out", str(tmp_path / "pnp.zip")], env=env)
+    assert run.exit_code == 1
+    assert "Error: nothing exported: every selected cluster was skipped: 9 (no classification " \
+           "label)" in run.output
+    run = CliRunner().invoke(main, ["export", "coco", "--robot", "nobody",
+                                    "--out", str(tmp_path / "none.zip")], env=env)
+    assert run.exit_code == 1 and not (tmp_path / "none.zip").exists()
+    assert "Error: nothing exported: the query selects no clusters" in run.output

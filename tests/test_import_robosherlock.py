@@ -18,13 +18,14 @@ import pytest
 from pymongo import MongoClient
 
 from percept_memory.converters import Unknown
+from percept_memory.ingest.errors import SourceError
 from percept_memory.ingest.robosherlock import (
     RoboSherlockFormatError,
     read_collections,
     read_database,
     read_dump,
 )
-from percept_memory.ingest.service import IngestService, SourceError
+from percept_memory.ingest.service import IngestService
 from percept_memory.memory.types import (
     Classification,
     FeatureVector,

@@ -4,6 +4,8 @@ limits, a server-side time limit, and no way for a user value to become a MongoD
 from __future__ import annotations
 
 import json
+import re
+from datetime import UTC, datetime
 
 import pytest
 from click.testing import CliRunner
@@ -164,14 +166,41 @@ def test_every_database_command_carries_the_time_limit(mongo_uri, store, kitchen
 def test_pmem_query_answers_on_the_command_line(mongo_uri, db_name, kitchen):
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
     run = CliRunner().invoke
-    where = run(main, ["query", "where-is", "Heinz", "--limit", "1"], env=env)
+    where = run(main, ["query", "where-is", "Heinz", "--limit", "1", "--json"], env=env)
     assert where.exit_code == 0, where.output
-    assert json.loads(where.stdout)[0]["region"] == "shelf"
+    (heinz,) = json.loads(where.stdout)
+    assert heinz["region"] == "shelf"
+    assert heinz["last_seen"] == datetime.fromtimestamp(
+        heinz["last_seen_ns"] / 1e9, UTC).strftime("%Y-%m-%dT%H:%M:%S.") + \
+        f"{heinz['last_seen_ns'] % 10**9:09d}Z"
     hits = run(main, ["query", "clusters", "--text", "Prinles", "--region", "shelf",
-                      "--where", "classification:confidence>0.5", "--count"], env=env)
+                      "--where", "classification:confidence>0.5", "--count", "--json"], env=env)
     assert hits.exit_code == 0 and json.loads(hits.stdout)["total"] > 0
-    at = run(main, ["query", "what-is-at", "--region", "table", "--t", "2024-03-06T08:30"],
-             env=env)
+    at = run(main, ["query", "what-is-at", "--region", "table", "--t", "2024-03-06T08:30",
+                    "--json"], env=env)
     assert at.exit_code == 0 and json.loads(at.stdout)["objects"]
     bad = run(main, ["query", "clusters", "--limit", "9999"], env=env)
     assert bad.exit_code == 1 and "limit" in bad.output
+
+
+def test_pmem_query_takes_the_subject_as_argument_and_where_and_when_as_options(
+        mongo_uri, db_name, kitchen):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    run = CliRunner().invoke
+    where = run(main, ["query", "where-is", "Heinz", "--limit", "1"], env=env)
+    assert where.exit_code == 0, where.output
+    header, row = where.stdout.splitlines()
+    assert header.split()[:4] == ["name", "state", "map", "region"]
+    assert re.search(r"\bshelf\b.* 2024-03-\d\dT\d\d:\d\d:\d\dZ ", row)
+    by_hour = run(main, ["query", "cooccurrence", "Heinz", "--by-hour"], env=env)
+    assert by_hour.exit_code == 0, by_hour.output
+    assert by_hour.stdout.startswith("rows:\n  name ") and " shelf " in by_hour.stdout
+    now = run(main, ["query", "what-is-at", "--region", "shelf"], env=env)
+    assert now.exit_code == 0 and now.stdout.startswith("t: now\n")
+    now = run(main, ["query", "changes", "--region", "shelf", "--t1", "2024-03-06", "--json"],
+                     env=env)
+    assert json.loads(now.stdout)["t2"] == "now" and str(2**63 - 1) not in now.stdout
+    missing = run(main, ["query", "changes", "--region", "shelf"], env=env)
+    assert missing.exit_code == 2 and "--t1" in missing.output
+    nothing = run(main, ["query", "where-is", "zzyzx"], env=env)
+    assert nothing.exit_code == 0 and nothing.stdout == "" and "nothing matches" in nothing.output

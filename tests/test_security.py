@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import uvicorn
 from click.testing import CliRunner
 from fastapi.testclient import TestClient
 from pydantic import ValidationError
@@ -149,7 +150,7 @@ def test_pmem_serve_on_all_interfaces_needs_a_token_for_writes(mongo_uri, db_nam
                                    headers={"content-type": "application/json"}).status_code)
         answers.append(client.get("/api/jobs").status_code)
 
-    monkeypatch.setattr(cli.uvicorn, "run", run)
+    monkeypatch.setattr(uvicorn, "run", run)
     result = CliRunner().invoke(cli.main, ["serve", "--host", "0.0.0.0"],
                                 env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
     assert result.exit_code == 0, result.output

@@ -815,6 +815,41 @@ def test_bad_parameters_of_the_new_pages_get_a_page_naming_the_problem(client, p
     assert 'role="alert"' in response.text
 
 
+def test_a_scene_without_camera_images_opens_on_its_crops_and_where_they_are(client, week):
+    scene = week.scenes[3]
+    assert not scene.images and scene.clusters
+    body = client.get(f"/scenes/{scene.id}").text
+    crops, plan, log = (body.index(mark) for mark in (
+        'class="grid crops"', "Where the scene&#39;s clusters are on the map", "<h2>Log</h2>"))
+    assert crops < plan < log
+    for number, cluster in enumerate(scene.clusters, 1):
+        assert f'src="/img/clusters/{cluster.id}/crop" alt="crop of cluster {number}"' in body
+        assert f'<a href="#cluster-{number}" class="object" tabindex="-1">' in body
+
+
+def test_the_search_url_holds_only_the_fields_given(client):
+    """The GET form sends every field, empty ones too: the page sends the browser on to the
+    URL without them, to be shared."""
+    answer = client.get("/search?text=cereal&region=&sphere=&after=&where=&view=grid",
+                        follow_redirects=False)
+    assert answer.status_code == 303
+    assert answer.headers["location"] == "/search?text=cereal&view=grid"
+
+
+def test_a_time_the_picker_cannot_hold_stays_in_the_form_beside_its_problem(client):
+    page = client.get("/search?after=yesterday&before=2024-03-06T08:30").text
+    assert '<input type="text" step="1" name="after" value="yesterday">' in page
+    assert 'name="before" value="2024-03-06T08:30"' in page and "after: " in page
+    assert '<input type="datetime-local" step="1" name="before"' in page
+
+
+def test_the_scene_log_takes_an_annotation_types_short_name(client):
+    by_name = client.get("/?type=pm.annotation.Logo")
+    by_short_name = client.get("/?type=Logo")
+    assert by_short_name.status_code == by_name.status_code == 200
+    assert by_short_name.text.count("/scenes/") == by_name.text.count("/scenes/") > 1
+
+
 NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '{"$gt": 1}',
          "ä" * 600, "²", "2024-02-30", "1,2", "1,2,3,4,5,6,7", "a:b=c",
          "classification:confidence>nan"]

@@ -44,7 +44,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 from scipy.spatial.transform import Rotation
 
-from percept_memory.ingest.service import SourceError, in_map
+from percept_memory.ingest.errors import SourceError
+from percept_memory.ingest.service import in_map
 from percept_memory.ingest.synthetic import KINECT
 from percept_memory.memory.types import (
     Cluster,

@@ -62,7 +62,8 @@ from pydantic import ValidationError
 from pymongo import MongoClient
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
-from percept_memory.ingest.service import SourceError, in_map
+from percept_memory.ingest.errors import SourceError
+from percept_memory.ingest.service import in_map
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,
@@ -123,11 +124,13 @@ def read_dump(folder: Path, robot: str = "pr2", map_name: str | None = None
         raise SourceError(
             f"{folder} holds no {CAS}.bson: not a mongodump folder of a RoboSherlock database"
         )
-    collections = {
-        path.stem: _dump_documents(path)
-        for path in sorted(folder.glob("*.bson"))
-        if not path.name.startswith("system.")
-    }
+    files = [path for path in sorted(folder.glob("*.bson"))
+             if not path.name.startswith("system.")]
+    pointers = [path for path in files if _is_lfs_pointer(path)]
+    if pointers:
+        log.warning("%s: skipping %s: git-lfs pointers, never fetched (`git lfs pull`)",
+                    folder.name, ", ".join(path.name for path in pointers))
+    collections = {path.stem: _dump_documents(path) for path in files if path not in pointers}
     return in_map(read_collections(collections, robot), map_name or f"robosherlock/{folder.name}")
 
 
@@ -156,15 +159,14 @@ def read_collections(
         yield _scene(time, frame, by_id, objects.get(time, []), robot)
 
 
+def _is_lfs_pointer(path: Path) -> bool:
+    """A file git-lfs stands in for, the data itself never fetched."""
+    with path.open("rb") as file:
+        return file.read(len(LFS_POINTER)) == LFS_POINTER
+
+
 def _dump_documents(path: Path) -> Iterator[dict]:
     with path.open("rb") as file:
-        if file.read(len(LFS_POINTER)) == LFS_POINTER:
-            log.warning(
-                "skipping %s: it is a git-lfs pointer, not BSON (the file itself was never "
-                "fetched; `git lfs pull` it to import it)", path,
-            )
-            return
-        file.seek(0)
         try:
             yield from bson.decode_file_iter(file)
         except InvalidBSON as error:

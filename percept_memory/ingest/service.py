@@ -20,6 +20,7 @@ from typing import Any, NamedTuple
 
 from pydantic import ValidationError
 
+from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
@@ -30,22 +31,6 @@ from percept_memory.memory.types import Scene
 
 DEFAULT_BATCH = 32
 UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a field's path
-
-
-class IngestError(ValueError):
-    """Input that is not a valid scene. `problems` holds one entry per problem: which item of
-    the batch, the field path (e.g. `clusters.0.annotations.2.confidence`) and what is wrong."""
-
-    def __init__(self, problems: list[dict]):
-        self.problems = problems
-        lines = [f"{p['item']}: {p['path'] or '(scene)'}: {p['message']}" for p in problems[:10]]
-        more = f"\n... and {len(problems) - 10} more" if len(problems) > 10 else ""
-        super().__init__(f"{len(problems)} problem(s) in the input:\n" + "\n".join(lines) + more)
-
-
-class SourceError(ValueError):
-    """A file, folder or database that cannot be read as percepts; the message names it and
-    says what is wrong (importers' errors derive from this)."""
 
 
 def problems_of(error: ValidationError, item: Any) -> list[dict]:

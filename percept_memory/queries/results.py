@@ -3,12 +3,19 @@ and the CLI give the same shapes. Times are int64 nanoseconds since the epoch, U
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel
 
 from percept_memory.memory.types import Id
 
+
+class Moment:
+    """Marks an int field as a moment: int64 nanoseconds since the epoch, UTC (so that the
+    command line can show it in ISO 8601)."""
+
+
+Nanoseconds = Annotated[int, Moment]
 Position = tuple[float, float, float]
 State = Literal["present", "hidden", "disappeared"]
 
@@ -19,7 +26,7 @@ class ClusterHit(BaseModel):
     id: Id
     scene_id: Id | None = None
     object_id: Id | None = None
-    time: int
+    time: Nanoseconds
     robot: str
     region: str | None = None
     position: Position | None = None
@@ -55,8 +62,8 @@ class Belief(BaseModel):
     state: State
     region: str | None = None
     position: Position | None = None
-    first_seen: int | None = None
-    last_seen: int | None = None
+    first_seen: Nanoseconds | None = None
+    last_seen: Nanoseconds | None = None
     last_cluster: Id | None = None
     last_scene: Id | None = None
     robot: str | None = None
@@ -71,7 +78,7 @@ class Sighting(BaseModel):
 
     object_id: Id
     name: str | None = None
-    time: int
+    time: Nanoseconds
     region: str | None = None
     position: Position | None = None
     cluster_id: Id | None = None
@@ -86,10 +93,10 @@ class Stay(BaseModel):
 
     region: str | None = None
     position: Position | None = None
-    since: int  # when it was first seen there
-    last_seen: int  # when it was last seen there
-    hidden_since: int | None = None  # out of view from then on, still believed there
-    until: int | None = None  # when it was found gone or elsewhere; None: still there
+    since: Nanoseconds  # when it was first seen there
+    last_seen: Nanoseconds  # when it was last seen there
+    hidden_since: Nanoseconds | None = None  # out of view from then on, still believed there
+    until: Nanoseconds | None = None  # when it was found gone or elsewhere; None: still there
     ended_by: Literal["move", "disappear"] | None = None
     observations: int = 0
 
@@ -108,13 +115,13 @@ class ObjectAt(BaseModel):
     state: State
     region: str | None = None
     position: Position | None = None
-    since: int  # time of the event that made it so
+    since: Nanoseconds  # time of the event that made it so
     explanation: str  # that event's explanation: appear, stay, move, newview, hidden, ...
     cluster_id: Id | None = None  # the last observation of it up to that moment
 
 
 class Contents(BaseModel):
-    t: int
+    t: Nanoseconds
     objects: list[ObjectAt]
 
 
@@ -126,8 +133,8 @@ class Moved(BaseModel):
 
 
 class Changes(BaseModel):
-    t1: int
-    t2: int
+    t1: Nanoseconds
+    t2: Nanoseconds
     appeared: list[ObjectAt]  # at the place at t2, not at t1
     disappeared: list[Moved]  # at the place at t1, not at t2 (`after`: where it went)
     moved: list[Moved]  # at the place at both times, moved in between

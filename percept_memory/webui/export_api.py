@@ -1,6 +1,8 @@
 """GET and POST /api/export: the clusters a query selects, as training data in a zip that is
-streamed while it is written. The query (format, label source, filter) is checked before the
-first byte is sent, so a bad one gets the app's one error format (422), not a broken zip."""
+streamed while it is written. The query (format, label source, filter) is checked, and the
+export run up to its first cluster, before the first byte is sent, so a bad query or one whose
+clusters all have to be skipped gets the app's one error format (422 naming why), not a broken
+or empty zip."""
 
 # no `from __future__ import annotations`: FastAPI reads the endpoints' annotations
 
@@ -16,7 +18,7 @@ from starlette.exceptions import HTTPException
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.export.model import ExportQuery
-from percept_memory.queries.export.run import Export
+from percept_memory.queries.export.run import Export, NothingExported
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params
 
@@ -36,10 +38,11 @@ def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
     def started(query: ExportQuery) -> StreamingResponse:
         try:
             export = Export(store, query, settings)
-        except QueryError as error:
+            chunks = export.started()
+        except (QueryError, NothingExported) as error:
             raise HTTPException(422, str(error)) from None
         return StreamingResponse(
-            export.zip_stream(), media_type="application/zip",
+            chunks, media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="pmem-{query.format}.zip"',
                      "X-Clusters-Selected": str(export.total)})
 

@@ -6,6 +6,8 @@ enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from bson import ObjectId
 from fastapi import APIRouter, FastAPI, Request
 from fastapi.concurrency import run_in_threadpool
@@ -34,6 +36,7 @@ from .html import HERE, LIST_FIELDS, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
+PLAN_WIDTH, PLAN_HEIGHT = 640, 400
 CACHED = {"Cache-Control": "max-age=3600"}  # nosniff and the rest: guard.py, on all
 
 
@@ -79,9 +82,10 @@ def page_routes(store: MemoryStore) -> APIRouter:
             return names, explained
 
         names, explained = await run_in_threadpool(load)
+        plan = None if scene.images else await run_in_threadpool(_plan, store, scene)
         return page(request, "scene.html", {
             "scene": scene, "names": names, "events": explained, "boxes": _boxes(scene),
-            "log": render.log_by_annotator(scene.log),
+            "log": render.log_by_annotator(scene.log), "plan": plan,
         })
 
     @router.get("/clusters/{cluster_id}")
@@ -140,6 +144,27 @@ def _boxes(scene: Scene) -> dict[str, list[tuple[int, ImageROI]]]:
         if roi is not None and roi.image in boxes:
             boxes[roi.image].append((number, roi))
     return boxes
+
+
+@dataclass
+class Plan:
+    """A scene's clusters drawn top-down on its map's floor plan, numbered as on the page."""
+
+    view: belief_map.Projection
+    regions: list[belief_map.DrawnRegion]
+    marks: list[tuple[int, float, float]]  # cluster number, x, y
+
+
+def _plan(store: MemoryStore, scene: Scene) -> Plan | None:
+    """For a scene without camera images, where its clusters are in the map frame (None when
+    none has a position): what the page shows first, since there are no boxes to draw."""
+    placed = [(number, cluster.position) for number, cluster in enumerate(scene.clusters, 1)
+              if cluster.position]
+    if not placed:
+        return None
+    view, regions = belief_map.floor_plan(store, scene.map, [p for _, p in placed],
+                                          PLAN_WIDTH, PLAN_HEIGHT)
+    return Plan(view, regions, [(number, *view.point(p[0], p[1])) for number, p in placed])
 
 
 def _found(get, key: ObjectId):

@@ -14,9 +14,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
 from pymongo import DESCENDING
 
-from percept_memory.converters import class_for, name_of
 from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import Annotation
+from percept_memory.queries.model import canonical_type
 
 from .html import LIST_FIELDS, PageError, nanoseconds, page
 
@@ -80,15 +79,15 @@ def scene_filter(filters: dict[str, str], stored_types: list[str]) -> dict:
 
 
 def annotation_type(text: str, stored: list[str]) -> str:
-    """The stored name of an annotation type: one stored (also unknown ones) or a registered
-    one, by its name or an alias (rs.annotation.Classification)."""
+    """The stored name of an annotation type: one stored (also unknown ones), or a registered
+    one by its name, an alias (rs.annotation.Classification) or its short name (Logo), as
+    the query model's field predicates take them."""
     if text in stored:
         return text
-    cls = class_for(text)
-    if cls is None or not issubclass(cls, Annotation):
-        raise PageError(422, f"type: {text!r} is not an annotation type; stored are "
-                             f"{', '.join(stored) or 'none'}")
-    return name_of(cls)
+    try:
+        return canonical_type(text)
+    except ValueError as error:
+        raise PageError(422, f"type: {error}") from None
 
 
 def _cursor(text: str) -> tuple[int, ObjectId]:

@@ -9,11 +9,12 @@ comes back as the form with each problem named (422), never a 500.
 
 from __future__ import annotations
 
+import re
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import ValidationError
 
 from percept_memory.converters import registered_types
@@ -27,6 +28,7 @@ from percept_memory.queries.params import from_params
 from .html import PageError, page
 
 PAGE_SIZE = 48
+LOCAL_TIME = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d(:\d\d(\.\d{1,3})?)?$")
 VIEWS = ("grid", "list")
 HINT_SKIPPED = {"id", "source"}
 
@@ -34,15 +36,19 @@ HINT_SKIPPED = {"id", "source"}
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
-    @router.get("/search")
-    async def search_page(request: Request) -> HTMLResponse:
-        given = [(k, v) for k, v in request.query_params.multi_items() if v.strip()]
+    @router.get("/search", response_model=None)
+    async def search_page(request: Request) -> HTMLResponse | RedirectResponse:
+        asked_for = request.query_params.multi_items()
+        given = [(k, v) for k, v in asked_for if v.strip()]
+        if len(given) < len(asked_for):  # the form sends its empty fields too
+            return RedirectResponse("/search?" + urlencode(given), status_code=303)
         views = [v for k, v in given if k == "view"]
         view = views[-1] if views else VIEWS[0]
         if view not in VIEWS:
             raise PageError(422, f"view: {view!r} is not one of {', '.join(VIEWS)}")
         asked = [(k, v) for k, v in given if k != "view"]
-        context = {"view": view, "form": _form(asked), "problems": [], "hits": [],
+        context = {"view": view, "form": _form(asked), "time_inputs": _time_inputs(asked),
+                   "problems": [], "hits": [],
                    "crops": set(), "links": _links(asked, view), "next": None,
                    **await run_in_threadpool(_choices, store)}
         try:
@@ -76,6 +82,15 @@ def _form(asked: list[tuple[str, str]]) -> dict[str, list[str]]:
     for key, value in asked:
         form.setdefault(key, []).append(value)
     return form
+
+
+def _time_inputs(asked: list[tuple[str, str]]) -> dict[str, str]:
+    """The input type of each time field: a browser's date and time picker, or text for a
+    value the picker cannot hold (nanoseconds, a time zone, a mistake), which it would
+    otherwise show blank while the page names it as the problem."""
+    given = dict(asked)
+    return {name: "text" if name in given and not LOCAL_TIME.match(given[name])
+            else "datetime-local" for name in ("after", "before")}
 
 
 def _links(asked: list[tuple[str, str]], view: str) -> dict[str, str]:

@@ -15,6 +15,7 @@ from typing import Annotated, Literal, Protocol
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from percept_memory.ingest.errors import BackendSetupError
 from percept_memory.memory.settings import Settings
 
 Category = Literal[
@@ -46,10 +47,6 @@ class BackendError(Exception):
 
 class RejectedLookup(BackendError):
     """The service refused the request for good (bad request, no such endpoint): no retry."""
-
-
-class BackendSetupError(ValueError):
-    """A backend cannot be set up as configured (no URL, no catalogue): the message says why."""
 
 
 class LookupBackend(Protocol):

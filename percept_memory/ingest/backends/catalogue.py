@@ -30,9 +30,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from percept_memory.ingest.errors import BackendSetupError
 from percept_memory.ingest.phash import crop_phash, hamming
 
-from . import BackendSetupError, Finding
+from . import Finding
 
 SHIPPED = Path(__file__).with_name("products")
 PHASH_RADIUS = 10  # the lookup cache's default radius: the same picture

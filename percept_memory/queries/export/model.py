@@ -10,7 +10,7 @@ from percept_memory.queries.model import MAX_LIST, ClusterFilter, Name, listed
 
 Format = Literal["coco", "yolo", "imagefolder", "jsonl"]
 LabelSource = Literal["classification", "detection", "ground_truth", "object", "text"]
-ImageMode = Literal["scenes", "crops"]
+ImageMode = Literal["auto", "scenes", "crops"]
 IMAGE_FORMATS = ("coco", "yolo")
 
 
@@ -23,8 +23,9 @@ class ExportQuery(ClusterFilter):
         description="where labels come from: classification, detection, ground_truth, "
                     "object (the believed object's name) or text (OCR)")
     images: ImageMode | None = Field(
-        default=None, description="coco and yolo: whole scene images with the clusters' "
-                                  "boxes (default), or each cluster's crop as an image")
+        default=None, description="coco and yolo: auto (default: the scene image where the "
+                                  "cluster's scene has one, else its crop), scenes (whole scene "
+                                  "images with the clusters' boxes) or crops")
     feature: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="jsonl: feature vector names (VFH, Caffe, color_histogram); "
                                 "all a cluster has if none given")
@@ -38,7 +39,7 @@ class ExportQuery(ClusterFilter):
         if self.feature and self.format != "jsonl":
             raise ValueError(f"`feature` is an option of jsonl, not of {self.format}")
         if self.images is None and self.format in IMAGE_FORMATS:
-            object.__setattr__(self, "images", "scenes")
+            object.__setattr__(self, "images", "auto")
         return self
 
     def cluster_filter(self) -> ClusterFilter:

@@ -3,6 +3,7 @@
     export = Export(store, ExportQuery(format="coco", region=["table"]))
     export.total                         # clusters selected (the query is checked here)
     for chunk in export.zip_stream(): ...  # the zip, a chunk at a time
+    export.started()                     # the same, NothingExported if nothing would be in it
     export.save(Path("out.zip"))         # or a folder: export.save(Path("out"))
 
 `manifest.json` records the format, the label source, the query, how many clusters were
@@ -12,6 +13,7 @@ exported, how many were skipped and why, and the classes in id order.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from itertools import chain
 from pathlib import Path
 
 from percept_memory.memory.settings import Settings
@@ -30,6 +32,10 @@ from .yolo import Yolo
 WRITERS: dict[str, type[Writer]] = {"coco": Coco, "yolo": Yolo, "imagefolder": ImageFolder,
                                     "jsonl": Jsonl}
 PIXELS = {"imagefolder": "crops", "jsonl": None}  # coco and yolo: the query's `images`
+
+
+class NothingExported(ValueError):
+    """No selected cluster made it into the export (the message says why)."""
 
 
 class Export:
@@ -64,6 +70,18 @@ class Export:
             yield from sink.drain()
         archive.close()
         yield from sink.drain()
+
+    def started(self) -> Iterator[bytes]:
+        """The zip stream, run here up to its first exported cluster, so that an export with
+        nothing in it raises NothingExported before a byte is sent (skipped clusters write
+        nothing, so what is held back is at most one scene's entries)."""
+        stream = self.zip_stream()
+        head = []
+        for chunk in stream:
+            head.append(chunk)
+            if self.summary.exported:
+                return chain(head, stream)
+        raise NothingExported(self.summary.why_empty())
 
     def save(self, path: Path, progress: Callable[[int], None] = lambda done: None) -> Summary:
         """Write the export to a zip file (a path ending in .zip) or a new folder."""

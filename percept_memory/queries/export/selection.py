@@ -95,13 +95,13 @@ class Selection:
 
     def _scenes(self, clusters: list[Cluster]) -> dict[ObjectId, Scene]:
         """The scenes of the clusters, without clouds and clusters, with the images the
-        clusters' boxes are in: all of them for scene images, for crops those of the clusters
-        that have no crop stored (it is cut from the image)."""
+        clusters' boxes are in: all of them for scene images (where the scene has them), for
+        crops those of the clusters that have no crop stored (it is cut from the image)."""
         projection = dict.fromkeys(SCENE_FIELDS, 1)
         for cluster in clusters:
             rois = [h for h in cluster.hypotheses if isinstance(h, ImageROI)]
-            if self.pixels == "scenes" or (self.pixels == "crops" and
-                                           all(roi.crop is None for roi in rois)):
+            if self.pixels in ("auto", "scenes") or (self.pixels == "crops" and
+                                                     all(roi.crop is None for roi in rois)):
                 projection |= {f"images.{roi.image}": 1 for roi in rois}
         found = list(self.store.db[SCENES].find(
             {"_id": {"$in": list({c.scene_id for c in clusters})}}, projection))

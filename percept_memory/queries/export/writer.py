@@ -32,6 +32,16 @@ class Summary:
     exported: int = 0
     skipped: Counter = field(default_factory=Counter)  # reason -> clusters
 
+    def skipped_text(self) -> str:
+        """What was skipped and why, for people: "30 (no classification label), ..."."""
+        return ", ".join(f"{count} ({reason})" for reason, count in sorted(self.skipped.items()))
+
+    def why_empty(self) -> str:
+        """Why an export holds no cluster: what the CLI's error and the API's 422 say."""
+        if not self.skipped:
+            return "nothing exported: the query selects no clusters"
+        return f"nothing exported: every selected cluster was skipped: {self.skipped_text()}"
+
 
 @dataclass
 class Picture:
@@ -70,10 +80,23 @@ class Writer(ABC):
         self.summary.skipped[reason] += count
 
     def pictures(self, items: list[Item]) -> Iterator[Picture]:
-        """Scene images with every item's box in them, or each item's crop (query.images)."""
-        if self.query.images == "scenes":
+        """Scene images with every item's box in them, or each item's crop (query.images);
+        auto: the scene image where the scene has the one the item's box is in, else the crop
+        (the kitchen week's scenes have crops and no camera image)."""
+        if self.query.images == "auto":
+            in_scene: list[Item] = []
+            cropped: list[Item] = []
+            for item in items:
+                has_image = pixels.scene_roi(item.cluster, item.scene) is not None
+                (in_scene if has_image else cropped).append(item)
+            yield from self._scene_pictures(in_scene)
+            yield from self._crop_pictures(cropped)
+        elif self.query.images == "scenes":
             yield from self._scene_pictures(items)
-            return
+        else:
+            yield from self._crop_pictures(items)
+
+    def _crop_pictures(self, items: list[Item]) -> Iterator[Picture]:
         for item in items:
             found = pixels.crop_of(item.cluster, item.scene)
             if found is None:

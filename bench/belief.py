@@ -43,7 +43,8 @@ each truth row; a nudge counts as a move whatever its size. Beyond it:
   and turned while unseen still wants the old id: identity.py's looser one is reported too);
 - object ids per true object: object ids the memory made / real objects it observed;
 - where-is: for the sampled objects on a table that were observed before, whether the answer
-  names the right table (a "disappeared" object is wrong), the position error (2D), and for
+  names the right table (a "disappeared" object is wrong; also given for those still on the
+  table they were last seen on, which a memory could know), the position error (2D), and for
   those not moved since their last observation the share within 0.1 m;
 - time per scene: the POST with wait=belief as the client sees it (p50, p95), and p95 by
   objects in the map's memory (buckets of 25; target at >= 100 objects).
@@ -300,6 +301,7 @@ class Extra:
 
     strict: list[int] = field(default_factory=lambda: [0, 0])
     right_table: list[int] = field(default_factory=lambda: [0, 0])
+    right_table_knowable: list[int] = field(default_factory=lambda: [0, 0])  # same table
     near_unmoved: list[int] = field(default_factory=lambda: [0, 0])
     errors_m: list[float] = field(default_factory=list)
     timings: list[tuple[int, float]] = field(default_factory=list)  # objects in memory, ms
@@ -307,7 +309,7 @@ class Extra:
     true_objects: int = 0
 
     def merge(self, other: Extra) -> None:
-        for name in ("strict", "right_table", "near_unmoved"):
+        for name in ("strict", "right_table", "right_table_knowable", "near_unmoved"):
             mine, theirs = getattr(self, name), getattr(other, name)
             mine[0] += theirs[0]
             mine[1] += theirs[1]
@@ -331,7 +333,8 @@ class LongRun(Run):
         self.where_samples = where_samples
         self.last_id: dict[int, Any] = {}  # real object -> id its last observation got
         self.last_place: dict[int, np.ndarray] = {}  # real object -> place when last seen
-        self.ids: set[Any] = set()
+        self.ids: set[Any] = set()  # object ids the memory has made
+        self.seen_now: list[int] = []  # real objects observed in this scene (by observe())
 
     def observe(self, o: int) -> Observation:
         rgb = self.world.colour[o] + self.noise_rng.normal(0, self.noise, 3)
@@ -359,7 +362,7 @@ class LongRun(Run):
     def step(self, score: Score, extra: Extra) -> None:
         self.world.act(self.actions)
         in_memory = len(self.ids)
-        self.seen_now: list[int] = []  # filled by observe()
+        self.seen_now = []
         self.look(int(self.world.rng.integers(TABLES)), score)
         extra.timings.append((in_memory, self.decider.last_ms))
         self.score_strict(extra)
@@ -392,6 +395,9 @@ class LongRun(Run):
                      and answer.get("region") == table_name(table_of(true)))
             extra.right_table[0] += right
             extra.right_table[1] += 1
+            if table_of(self.last_place[o]) == table_of(true):  # a memory could know it
+                extra.right_table_knowable[0] += right
+                extra.right_table_knowable[1] += 1
             if answer is None or answer.get("position") is None:
                 continue
             error = float(np.linalg.norm(np.asarray(answer["position"][:2]) - true))
@@ -441,6 +447,9 @@ def summary(noise: float, score: Score, extra: Extra) -> dict[str, Any]:
         "object_ids_per_true_object": None if ratio is None else round(ratio, 2),
         "where_is": {"asked": extra.right_table[1],
                      "right_table_percent": share(extra.right_table),
+                     # on the table it was last seen on: what any memory could know
+                     "on_last_seen_table_asked": extra.right_table_knowable[1],
+                     "on_last_seen_table_right_percent": share(extra.right_table_knowable),
                      "position_error_m": {"p50": p(extra.errors_m, 50),
                                           "p95": p(extra.errors_m, 95)},
                      "unmoved_asked": extra.near_unmoved[1],

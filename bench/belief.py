@@ -57,7 +57,8 @@ kitchen week (its `truth` names every cluster's real object): objects believed v
 objects mixing two real items, real items split, and which PnP persistent objects merged.
 
 Usage: python bench/belief.py [--scenes 800] [--seeds 1 2 3 4 5] [--levels ...]
-       [--tune-seeds 1001 1002 1003] [--tune] [--where-samples 2] [--kitchen-days 7] [--quick]
+       [--tune-seeds 1001 1002 1003] [--tune] [--where-samples 2] [--kitchen-days 7]
+       [--no-real-data] [--quick]   (full size: ~15 minutes on 2 busy cores)
 """
 
 from __future__ import annotations

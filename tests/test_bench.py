@@ -20,6 +20,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("pipeline.py", ["--days", "1", "--synthetic-scenes", "10", "--lag-scenes", "10",
                      "--rate", "20"], {"throughput", "belief_lag_over_http"}),
     ("identity.py", ["--scenes-per-level", "40", "--levels", "0.025"], {"levels"}),
+    ("belief.py", ["--quick"], {"levels", "seeds_reported", "targets_at_lowest_noise",
+                                "real_data"}),
     ("queries.py", ["--clusters", "3000", "--samples", "3"], {"queries"}),
     ("export.py", ["--clusters", "300", "--sizes", "100,300", "--formats", "imagefolder"],
      {"exports"}),

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -266,21 +267,39 @@ def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None
     echo_summary(source, summary)
 
 
+def _iso_time(_ctx, _param, value: str | None) -> int | None:
+    """An ISO 8601 time (naive is UTC) as nanoseconds since the epoch."""
+    from percept_memory.memory.types import timestamp_from_datetime
+
+    try:
+        return None if value is None else timestamp_from_datetime(datetime.fromisoformat(value))
+    except ValueError:
+        raise click.BadParameter(f"expected an ISO 8601 time such as 2018-03-28T15:13:07Z, "
+                                 f"got {value!r}") from None
+
+
 @import_.command(name="rgbd", epilog=example(
     "pmem import rgbd ../shared/data/robosherlock/samples/kitchen --map lab"))
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
 @click.option("--map", "map_name", help="the map the scenes belong to  [default: rgbd/<folder>]")
+@click.option("--time", "start", metavar="ISO", callback=_iso_time,
+              help="when the samples that record no time (PCD + image) were taken, the next "
+              "ones a second apart  [default: their cloud files' modification times]")
 @click.pass_obj
-def import_rgbd(settings: Settings, folder: Path, robot: str, map_name: str | None) -> None:
-    """RGB-D samples: PNG + depth PNG + viewpoint, or PNG + PCD (+ ground-truth .lbl)."""
+def import_rgbd(settings: Settings, folder: Path, robot: str, map_name: str | None,
+                start: int | None) -> None:
+    """RGB-D samples: PNG + depth PNG + viewpoint, PNG + PCD (+ ground-truth .lbl), or
+    RoboSherlock's test_rgb_image + test_point_cloud + test_viewpoint."""
     from percept_memory.ingest import rgbd
     from percept_memory.memory.store import MemoryStore
 
+    scenes = rgbd.read_samples(folder, robot, map_name, start)
     with MemoryStore.open(settings) as store:
-        scenes = rgbd.read_samples(folder, robot, map_name)
         summary = ingest_with_progress(store, folder.name, labelled(folder.name, scenes))
     echo_summary(str(folder), summary)
+    times = ", ".join(f"{count} from {how}" for how, count in sorted(scenes.times.items()))
+    click.echo(f"scene times: {times}")
 
 
 @main.command(epilog=example("pmem schema > scene.schema.json"))
@@ -517,6 +536,7 @@ def consolidate(settings: Settings) -> None:
         pipeline = memory_pipeline(store, settings)
         for stopping in (signal.SIGTERM, signal.SIGINT):
             signal.signal(stopping, lambda *_: pipeline.stop_soon())
+        click.echo("consolidating: SIGTERM or Ctrl-C stops", err=True)
         pipeline.run_forever()
     click.echo("consolidator stopped", err=True)
 

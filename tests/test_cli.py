@@ -85,6 +85,7 @@ def test_import_commands_summarise_and_never_duplicate(mongo_uri, db_name, tmp_p
     assert first.exit_code == 0, first.output
     assert "2 new scenes, 0 stored before, 17 clusters" in first.stdout
     assert "pm.annotation.ColorHistogram" in first.stdout
+    assert "scene times: 2 from the modification times of the cloud files" in first.stdout
     again = pmem("import", "rgbd", str(ROBOSHERLOCK / "samples" / "low_noise"), **env)
     assert "0 new scenes, 2 stored before" in again.stdout
 

@@ -25,6 +25,7 @@ from percept_memory.ingest.backends import Finding
 from percept_memory.ingest.backends.catalogue import SHIPPED, ProductCatalogue
 from percept_memory.ingest.backends.simulated import (
     CATEGORY_MIX,
+    PRODUCTS,
     SimulatedService,
     answer,
     sample_latency_s,
@@ -47,6 +48,7 @@ from percept_memory.memory.schema import (
     OUTBOX,
     SCENES,
 )
+from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import (
@@ -193,6 +195,21 @@ async def run_job_again(mongo_uri: str, db_name: str, doc: dict) -> None:
         assert outcome["cached"] and outcome["hash_distance"] == 0
     finally:
         await store.close()
+
+
+def test_lookups_do_not_rename_the_objects_they_are_wrong_about(fresh, mongo_uri, db_name):
+    """The simulated service names any crop after one of the thesis' products (table 5.4):
+    heard, but weak evidence, the kitchen's objects keep the names their own annotators gave."""
+    ingest(fresh, kitchen_week.generate(days=1).scenes[:30])
+    counts = asyncio.run(until_idle(settings_for(mongo_uri, db_name), backend="simulated",
+                                    concurrency=32))
+    assert counts["done"] > 50 and not counts["failed"]
+    kitchen = {normal_label(n) for i in kitchen_week.CATALOGUE.values() for n in (i.name, i.brand)
+               if n}
+    wrong = {normal_label(n) for p in PRODUCTS for n in (p.name, p.brand)} - kitchen
+    objects = list(fresh.db[OBJECTS].find())
+    assert any(wrong & set(o["label_weights"]) for o in objects)
+    assert not wrong & {o["name"] for o in objects}
 
 
 # --- a loopback lookup service ------------------------------------------------------------------

@@ -12,8 +12,11 @@ import cv2
 import imagehash
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from PIL import Image as PILImage
+from scipy.spatial.transform import Rotation
 
+from percept_memory.cli import main
 from percept_memory.ingest.rgbd import SampleError, read_pcd, read_samples
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.types import (
@@ -160,14 +163,15 @@ def test_low_noise_clusters_are_the_ground_truth_segments(low_noise):
             assert cluster.location().frame == "cloud" and cluster.region == "table"
 
 
-def test_low_noise_keeps_the_cloud_and_a_fixed_timestamp(low_noise):
+def test_low_noise_keeps_the_cloud_and_is_at_its_files_times(low_noise):
     cloud = low_noise[0].clouds["cloud"]
     assert cloud.points.dtype.names == ("x", "y", "z", "rgb", "normal_x", "normal_y",
                                         "normal_z", "curvature")
     assert len(cloud.points) == 64641 and cloud.frame == "cloud"
     again = list(read_samples(LOW_NOISE))
     assert [s.timestamp for s in again] == [s.timestamp for s in low_noise]
-    assert len({s.timestamp for s in low_noise}) == 2
+    assert [s.timestamp for s in low_noise] == [
+        (LOW_NOISE / name).stat().st_mtime_ns for name in ("cloud.pcd", "cloud1.pcd")]
 
 
 def test_low_noise_cloud_is_registered_to_the_image(low_noise):
@@ -325,3 +329,67 @@ def test_ascii_pcd_reads_like_binary(tmp_path):
     ascii_cloud, ascii_viewpoint = read_pcd(path)
     assert same_array(ascii_cloud, head)
     assert np.array_equal(ascii_viewpoint, viewpoint)
+
+
+# --- the command: times, layouts, image sizes ---------------------------------------------------
+
+
+def pmem_import(folder: Path, mongo_uri: str, db_name: str, *options: str):
+    return CliRunner().invoke(main, ["import", "rgbd", str(folder), *options],
+                              env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
+
+
+def test_a_folder_without_samples_fails_naming_the_layouts(tmp_path, mongo_uri, db_name):
+    (tmp_path / "notes.txt").write_text("no samples here")
+    result = pmem_import(tmp_path, mongo_uri, db_name)
+    assert result.exit_code == 1
+    assert f"Error: no RGB-D samples in {tmp_path}: looked for rgb_<stamp>.png + " \
+           "depth_<stamp>.png + viewpoint_<stamp>.vp, cloud<n>.pcd + image<n>.png" in result.stderr
+    assert "test_point_cloud_<n>.pcd + test_rgb_image_<n>.png + test_viewpoint_<n>.vp" \
+        in result.stderr
+
+
+def test_samples_recording_no_time_are_at_the_time_given(store, tmp_path, mongo_uri, db_name):
+    for name in ("cloud.pcd", "image.png", "ground_truth.lbl"):
+        shutil.copy(LOW_NOISE / name, tmp_path / name)
+    result = pmem_import(tmp_path, mongo_uri, db_name, "--time", "2018-03-28T15:13:07Z",
+                         "--map", "given")
+    assert result.exit_code == 0, result.output
+    assert "1 new scene" in result.stdout
+    assert "scene times: 1 from the time given, a second apart" in result.stdout
+    (scene,) = store.scenes.find({"map": "given"})
+    assert scene["timestamp"] == 1522249987 * 10**9
+    objects = list(store.db.objects.find({"map": "given"}))
+    assert len(objects) == 9 and all(o["first_seen"] == o["last_seen"] for o in objects)
+    bad = pmem_import(tmp_path, mongo_uri, db_name, "--time", "yesterday")
+    assert bad.exit_code == 2 and "expected an ISO 8601 time" in bad.stderr
+
+
+def test_robosherlocks_test_sample_at_twice_the_kinects_resolution(store, tmp_path, mongo_uri,
+                                                                   db_name, low_noise):
+    """RoboSherlock's test_rgb_image_01.png (1280x960) + test_point_cloud_01.pcd +
+    test_viewpoint_01.vp, made from low_noise's first sample: the intrinsics are scaled to the
+    image, the camera is found where it is at 640x480, the time is the viewpoint's stamp."""
+    image = cv2.imread(str(LOW_NOISE / "image.png"))
+    cv2.imwrite(str(tmp_path / "test_rgb_image_01.png"),
+                cv2.resize(image, (1280, 960), interpolation=cv2.INTER_CUBIC))
+    shutil.copy(LOW_NOISE / "cloud.pcd", tmp_path / "test_point_cloud_01.pcd")
+    shutil.copy(KITCHEN / f"viewpoint_{STAMP}.vp", tmp_path / "test_viewpoint_01.vp")
+    result = pmem_import(tmp_path, mongo_uri, db_name, "--map", "test sample", "--robot",
+                         "tester")  # the kitchen's viewpoint: its time, another robot
+    assert result.exit_code == 0, result.output
+    assert "1 new scene" in result.stdout
+    assert "scene times: 1 from the stamps of the viewpoint files" in result.stdout
+    (doc,) = store.scenes.find({"map": "test sample"}, {"_id": 1})
+    scene = store.get_scene(doc["_id"])
+    assert scene.timestamp == int(STAMP)
+    assert (scene.camera.width, scene.camera.height) == (1280, 960)
+    assert scene.camera.k == (1050.0, 0.0, 639.5, 0.0, 1050.0, 479.5, 0.0, 0.0, 1.0)
+    assert any(line.message.startswith("registered") for line in scene.log)
+    found, there = scene.camera_pose, low_noise[0].camera_pose
+    assert np.linalg.norm(np.subtract(found.translation, there.translation)) < 0.05
+    turn = Rotation.from_quat(found.rotation).inv() * Rotation.from_quat(there.rotation)
+    assert np.degrees(turn.magnitude()) < 2
+    for cluster in scene.clusters:
+        x, y, w, h = roi(cluster).box
+        assert x + w <= 1280 and y + h <= 960 and w > 100

@@ -297,9 +297,12 @@ def _free_port() -> int:
 
 
 def _consolidator(uri: str, db: str) -> subprocess.Popen:
+    """`pmem consolidate` in a process of its own, once it says it is consolidating."""
     env = {**os.environ, "MONGODB_URI": uri, "PMEM_DB": db, "PMEM_MAP_LEASE_S": "2"}
-    return subprocess.Popen([sys.executable, "-m", "percept_memory", "consolidate"], env=env,
-                            stderr=subprocess.DEVNULL)
+    process = subprocess.Popen([sys.executable, "-m", "percept_memory", "consolidate"],
+                               env=env, stderr=subprocess.PIPE, text=True)
+    assert "consolidating" in process.stderr.readline()
+    return process
 
 
 def _acknowledged(service: IngestService, scene: Scene):
@@ -360,7 +363,7 @@ def test_kill_9_of_the_consolidator_and_of_mongod_loses_nothing_and_doubles_noth
 
 def test_a_consolidator_process_stops_cleanly_on_sigterm(mongo_uri, db_name):
     process = _consolidator(mongo_uri, db_name)
-    time.sleep(2)
     process.send_signal(signal.SIGTERM)
     assert process.wait(timeout=30) == 0
+    assert "consolidator stopped" in process.stderr.read()
 

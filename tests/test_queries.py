@@ -8,6 +8,7 @@ import asyncio
 from collections import Counter
 
 import pytest
+from bson import ObjectId
 from pymongo import AsyncMongoClient
 from rapidfuzz.distance import Levenshtein
 
@@ -223,6 +224,32 @@ def empty_engine(mongo_uri, db_name):
     yield memory, QueryEngine(memory)
     client.drop_database(f"{db_name}_probe")
     memory.close()
+
+
+def test_where_is_ranks_present_before_hidden_before_gone_then_recent_then_seen_more(
+        empty_engine):
+    """The demo's ketchups, as consolidation left them: all called heinz, heinz tomato ketchup
+    and ketchup, with a little different shares of the weights. "the ketchup" is the present
+    one seen 43 times, not the one gone since, seen 11 times, whose "ketchup" share is larger."""
+    store, engine = empty_engine
+    names = ["heinz", "heinz tomato ketchup", "ketchup"]
+
+    def ketchup(state: str, observations: int, last_seen: int, weights: tuple) -> dict:
+        return {"_id": ObjectId(), "state": state, "observations": observations,
+                "first_seen": 0, "last_seen": last_seen, "names": names, "name": names[0],
+                "label_weights": dict(zip(names, weights, strict=True))}
+
+    store.db.objects.insert_many([
+        ketchup("disappeared", 11, 700, (19.51, 14.0, 7.26)),
+        ketchup("present", 43, 900, (95.66, 64.0, 32.8)),
+        ketchup("hidden", 5, 800, (10.0, 6.0, 3.0)),
+        ketchup("hidden", 9, 800, (30.0, 12.0, 8.0)),
+        ketchup("disappeared", 30, 600, (90.0, 60.0, 30.0)),
+    ])
+    found = engine.where_is("the ketchup")
+    assert [(b.state, b.observations) for b in found] == [
+        ("present", 43), ("hidden", 9), ("hidden", 5), ("disappeared", 11), ("disappeared", 30)]
+    assert {b.match for b in found} == {0.5}  # "the" names none of them
 
 
 def test_changes_between_two_looks_contain_every_true_change(engine, kitchen):

@@ -13,14 +13,12 @@ cached before it is appended, so a rerun finds the same answer, hence the same a
 from __future__ import annotations
 
 import asyncio
-import hashlib
 from dataclasses import dataclass
 from time import perf_counter
 from typing import Any
 
 import cv2
 import numpy as np
-from bson import ObjectId
 
 from percept_memory.ingest.backends import BackendError, Finding, LookupBackend
 from percept_memory.ingest.jobs import Job
@@ -38,7 +36,7 @@ from percept_memory.memory.types import (
     Text,
     WebLookup,
 )
-from percept_memory.memory.types.annotations import LookupProvenance
+from percept_memory.memory.types.annotations import LookupProvenance, lookup_annotation_id
 
 SOURCE = "LookupWorker"
 
@@ -57,12 +55,6 @@ def bgr_crop(image: Image) -> np.ndarray:
     if image.encoding.startswith("rgb"):
         return np.ascontiguousarray(data[..., 2::-1])
     return np.ascontiguousarray(data[..., :3])
-
-
-def annotation_id(job_id: ObjectId, position: int) -> ObjectId:
-    """The id of the `position`-th annotation a job appends: the same on every run."""
-    digest = hashlib.blake2b(job_id.binary + position.to_bytes(4, "big"), digest_size=8)
-    return ObjectId(job_id.binary[:4] + digest.digest())
 
 
 def in_image(box: tuple | None, roi: ImageROI, crop_shape: tuple[int, ...]) -> Box | None:
@@ -98,7 +90,7 @@ def annotations_for(findings: list[Finding], provenance: LookupProvenance, roi: 
             out.append(Barcode(source=source, code=finding.title, symbology=symbology))
     if provenance.job_id is not None:
         for position, annotation in enumerate(out):
-            annotation.id = annotation_id(provenance.job_id, position)
+            annotation.id = lookup_annotation_id(provenance.job_id, position)
     return out
 
 

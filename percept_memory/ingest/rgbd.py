@@ -1,13 +1,13 @@
 """RGB-D samples importer: RoboSherlock's `samples/` folders as Scenes.
 
-Two layouts, found anywhere under the folder given:
+Three layouts (LAYOUTS), found anywhere under the folder given:
 
 (a) `rgb_<stamp>.png` + `depth_<stamp>.png` (16-bit, millimetres, registered to the RGB image)
     + `viewpoint_<stamp>.vp` (the camera in the map frame and the time of that pose). The
     scene is in the map frame at `<stamp>` (ns), which pairs the three files. Objects: the
-    depth is back-projected with the Kinect intrinsics, the supporting surface found by RANSAC
+    depth is back-projected with the camera intrinsics, the supporting surface found by RANSAC
     (a horizontal plane in the map), and the points above it clustered; region "counter_top".
-(b) `image<n>.png` + `cloud<n>.pcd` (+ `ground_truth<n>.lbl`). There is no viewpoint and no
+(b) `cloud<n>.pcd` + `image<n>.png` (+ `ground_truth<n>.lbl`). There is no viewpoint and no
     recording time. The clouds are not in the camera frame (projected with the Kinect
     intrinsics they miss the image by up to 100 px), so the camera is found in the cloud's
     frame by registration: SIFT matches between a rendering of the coloured cloud and the
@@ -16,20 +16,30 @@ Two layouts, found anywhere under the folder given:
     ground-truth segments when labelled (but the largest one if it is planar: the table;
     low_noise's clouds are cut to the objects, so none is), else plane fit + clustering as in
     (a); region "table".
-    The timestamp is fixed per sample so re-importing gives the same scene: 2000-01-01 UTC
-    plus the first 48 bits of SHA-256("<folder name>/<cloud file name>") in nanoseconds.
+(c) `test_point_cloud_<n>.pcd` + `test_rgb_image_<n>.png` + `test_viewpoint_<n>.vp`
+    (RoboSherlock's own test sample): read as (b), at the time of the viewpoint's stamp (its
+    pose is the camera's in the map; how the cloud's frame lies in the map the files do not
+    say, so the scene stays in the cloud's frame).
+
+A time is never invented: (a) and (c) are at the time their files record; (b) records none, so
+its samples are at the time given (`time`, then a second apart in file order) or else at their
+cloud file's modification time (the same on every import of the same files; a copy of the
+folder has new file times). `Samples.times` says which, for the import summary to show.
+
+The intrinsics are the Kinect's (525 px focal length at 640x480), scaled to the image's size
+when it is another: the same lens read out at another resolution.
 
 Every object becomes a Cluster with an ImageROI (box, full-resolution mask, crop, pHash), a
-PointCluster (its points in the map for (a), indices into the scene cloud for (b)), a
+PointCluster (its points in the map for (a), indices into the scene cloud for (b), (c)), a
 ColorHistogram, a Location (centroid in the scene frame) and a Geometry (bounding box).
 """
 
 from __future__ import annotations
 
 import configparser
-import hashlib
 import itertools
 import re
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from time import perf_counter
@@ -48,6 +58,7 @@ from percept_memory.ingest.errors import SourceError
 from percept_memory.ingest.service import in_map
 from percept_memory.ingest.synthetic import KINECT
 from percept_memory.memory.types import (
+    CameraInfo,
     Cluster,
     ColorHistogram,
     Geometry,
@@ -63,8 +74,15 @@ from percept_memory.memory.types import (
 )
 
 SOURCE = "RGBDImporter"
-K = np.array(KINECT.k).reshape(3, 3)
-SAMPLE_EPOCH = 946_684_800 * 10**9  # 2000-01-01 UTC: base of the timestamps of layout (b)
+LAYOUTS = ("rgb_<stamp>.png + depth_<stamp>.png + viewpoint_<stamp>.vp",
+           "cloud<n>.pcd + image<n>.png (+ ground_truth<n>.lbl)",
+           "test_point_cloud_<n>.pcd + test_rgb_image_<n>.png + test_viewpoint_<n>.vp")
+SECOND = 10**9
+# How a scene's time was found (Samples.times).
+STAMPED = "the stamps of the file names"
+VIEWPOINT_STAMPS = "the stamps of the viewpoint files"
+GIVEN = "the time given, a second apart"
+FILE_TIMES = "the modification times of the cloud files"
 
 # Segmentation. Kinect depth noise on the counter is ~3.5 mm (std) at 1-1.5 m.
 PLANE_SAMPLE = 4000  # RANSAC runs on this many random points (the counter is a third)
@@ -99,27 +117,75 @@ class SampleError(SourceError):
         self.path = path
 
 
-def read_samples(folder: Path, robot: str = "pr2", map_name: str | None = None
-                 ) -> Iterator[Scene]:
-    """The scenes of every sample under `folder`: layout (a) by stamp, then layout (b) by
-    name. A sample is found by its `rgb_<stamp>.png` or `cloud<n>.pcd`; a missing partner file
-    is an error. They are one map: `map_name`, default `rgbd/<folder name>`."""
-    folder = Path(folder)
-    return in_map(_samples(folder, robot), map_name or f"rgbd/{folder.name}")
+class Samples:
+    """The scenes of the samples under `folder` (iterated: layout (a) by stamp, then (b) and
+    (c) by name), in one map: `map_name`, default `rgbd/<folder name>`. A sample is found by
+    its `rgb_<stamp>.png` or its cloud; a missing partner file is an error, and so is a folder
+    with no sample at all. `time` (ns): the time of the first sample that records none.
+    `times`: how the times of the scenes read so far were found -> how many."""
+
+    def __init__(self, folder: Path, robot: str = "pr2", map_name: str | None = None,
+                 time: int | None = None):
+        self.folder, self.robot, self.time = Path(folder), robot, time
+        self.map_name = map_name or f"rgbd/{self.folder.name}"
+        self.stamped = [(rgb, match.group(1)) for rgb in sorted(self.folder.rglob("rgb_*.png"))
+                        if (match := re.fullmatch(r"rgb_(\d+)\.png", rgb.name))]
+        self.clouds = _numbered(self.folder, "cloud")
+        self.tests = _numbered(self.folder, "test_point_cloud_")
+        if not (self.stamped or self.clouds or self.tests):
+            raise SourceError(f"no RGB-D samples in {self.folder}: looked for "
+                              + ", ".join(LAYOUTS))
+        self.times: Counter[str] = Counter()
+
+    def __iter__(self) -> Iterator[Scene]:
+        return in_map(self._scenes(), self.map_name)
+
+    def _scenes(self) -> Iterator[Scene]:
+        for rgb, stamp in self.stamped:
+            self.times[STAMPED] += 1
+            yield _depth_scene(rgb, stamp, self.robot)
+        for number, (cloud, n) in enumerate(self.clouds):
+            if self.time is None:
+                timestamp, how = cloud.stat().st_mtime_ns, FILE_TIMES
+            else:
+                timestamp, how = self.time + number * SECOND, GIVEN
+            self.times[how] += 1
+            yield _cloud_scene(cloud, _partner(cloud, f"image{n}.png"),
+                               cloud.with_name(f"ground_truth{n}.lbl"), timestamp, self.robot)
+        for cloud, n in self.tests:
+            viewpoint = _read_viewpoint(_partner(cloud, f"test_viewpoint_{n}.vp"))
+            self.times[VIEWPOINT_STAMPS] += 1
+            yield _cloud_scene(cloud, _partner(cloud, f"test_rgb_image_{n}.png"), None,
+                               viewpoint.stamp, self.robot)
 
 
-def _samples(folder: Path, robot: str) -> Iterator[Scene]:
-    for rgb in sorted(folder.rglob("rgb_*.png")):
-        if match := re.fullmatch(r"rgb_(\d+)\.png", rgb.name):
-            yield _depth_scene(rgb, match.group(1), robot)
-    for cloud in sorted(folder.rglob("cloud*.pcd"), key=_natural):
-        yield _cloud_scene(cloud, cloud.stem.removeprefix("cloud"), robot)
+def read_samples(folder: Path, robot: str = "pr2", map_name: str | None = None,
+                 time: int | None = None) -> Samples:
+    """The scenes of every sample under `folder` (see Samples)."""
+    return Samples(folder, robot, map_name, time)
 
 
-def _natural(path: Path) -> tuple:
-    """cloud.pcd, cloud1.pcd, cloud2.pcd, ..., cloud10.pcd."""
-    suffix = path.stem.removeprefix("cloud")
-    return (str(path.parent), int(suffix) if suffix.isdigit() else -1, suffix)
+def _numbered(folder: Path, prefix: str) -> list[tuple[Path, str]]:
+    """(path, n) of the `<prefix><n>.pcd` files under the folder, in natural order: cloud.pcd,
+    cloud1.pcd, cloud2.pcd, ..., cloud10.pcd."""
+    found = [(path, path.stem.removeprefix(prefix))
+             for path in folder.rglob(f"{prefix}*.pcd")]
+    return sorted(found, key=lambda f: (str(f[0].parent), int(f[1]) if f[1].isdigit() else -1,
+                                        f[1]))
+
+
+def camera_for(width: int, height: int, frame: str) -> CameraInfo:
+    """The Kinect's intrinsics scaled to an image of this size (pixel centres stay centres)."""
+    sx, sy = width / KINECT.width, height / KINECT.height
+    fx, _, cx, _, fy, cy, *_ = KINECT.k
+    return KINECT.model_copy(update={
+        "width": width, "height": height, "frame": frame,
+        "k": (fx * sx, 0.0, (cx + 0.5) * sx - 0.5, 0.0, fy * sy, (cy + 0.5) * sy - 0.5,
+              0.0, 0.0, 1.0)})
+
+
+def _matrix(camera: CameraInfo) -> np.ndarray:
+    return np.array(camera.k).reshape(3, 3)
 
 
 # --- layout (a): RGB + depth + viewpoint --------------------------------------------------------
@@ -139,13 +205,15 @@ def _depth_scene(rgb_path: Path, stamp: str, robot: str) -> Scene:
         raise SampleError(depth_path, f"depth is {depth.shape[1]}x{depth.shape[0]}, the RGB "
                           f"image {rgb.shape[1]}x{rgb.shape[0]}")
     log: list[LogLine] = []
+    camera = camera_for(rgb.shape[1], rgb.shape[0], pose.child_frame)
+    (fx, _, cx), (_, fy, cy), _ = _matrix(camera)
 
     start = perf_counter()
     v, u = np.nonzero(depth)
     z = depth[v, u] / 1000.0
-    camera = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
+    seen = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
     to_map = pose.matrix()
-    points = camera @ to_map[:3, :3].T + to_map[:3, 3]
+    points = seen @ to_map[:3, :3].T + to_map[:3, 3]
     plane = _fit_plane(points, viewer=to_map[:3, 3], up=np.array([0.0, 0.0, 1.0]))
     log.append(_line(start, f"plane fit on {min(len(points), PLANE_SAMPLE)} of {len(points)} "
                      "points: " + _describe(plane)))
@@ -169,7 +237,7 @@ def _depth_scene(rgb_path: Path, stamp: str, robot: str) -> Scene:
         robot=robot,
         frame=pose.frame,
         camera_pose=pose,
-        camera=KINECT.model_copy(update={"frame": pose.child_frame}),
+        camera=camera,
         images={"color": Image(data=rgb, encoding="bgr8"),
                 "depth": Image(data=depth, encoding="mono16")},
         clusters=clusters,
@@ -212,18 +280,21 @@ def _read_viewpoint(path: Path) -> Transform:
 # --- layout (b): RGB + PCD (+ ground truth) -----------------------------------------------------
 
 
-def _cloud_scene(cloud_path: Path, suffix: str, robot: str) -> Scene:
-    image_path = _partner(cloud_path, f"image{suffix}.png")
-    labels_path = cloud_path.with_name(f"ground_truth{suffix}.lbl")
+def _cloud_scene(cloud_path: Path, image_path: Path, labels_path: Path | None,
+                 timestamp: int, robot: str) -> Scene:
+    """The scene of a cloud and its image (layouts b and c), its objects the ground-truth
+    segments when the labels file exists."""
     rgb = _read_rgb(image_path)
     cloud, viewpoint = read_pcd(cloud_path)
     log: list[LogLine] = []
+    camera = camera_for(rgb.shape[1], rgb.shape[0], "camera")
+    k = _matrix(camera)
     finite = np.nonzero(np.isfinite(PointCloud(points=cloud).xyz()).all(axis=1))[0]
     xyz = PointCloud(points=cloud[finite]).xyz()
 
     start = perf_counter()
     to_camera = np.linalg.inv(viewpoint)
-    registered = _register(xyz, _colours(cloud[finite]), rgb, to_camera)
+    registered = _register(xyz, _colours(cloud[finite]), rgb, to_camera, k)
     if registered is None:
         log.append(_line(start, "could not register the cloud to the image; boxes assume the "
                          "PCD's VIEWPOINT", level="warning"))
@@ -234,7 +305,7 @@ def _cloud_scene(cloud_path: Path, suffix: str, robot: str) -> Scene:
                          f"camera rotated {angle:.1f} deg from the cloud frame"))
     camera_pose = np.linalg.inv(to_camera)
 
-    if labels_path.exists():
+    if labels_path is not None and labels_path.exists():
         start = perf_counter()
         segments = _read_labels(labels_path, len(cloud))
         background = _background(segments, cloud)
@@ -257,25 +328,24 @@ def _cloud_scene(cloud_path: Path, suffix: str, robot: str) -> Scene:
     usable[finite] = True
     groups = [g[usable[g]] for g in groups if usable[g].any()]  # NaN points have no place
     seen = np.full(len(cloud), False)
-    seen[finite] = _visible(xyz, to_camera, rgb.shape[:2])
+    seen[finite] = _visible(xyz, to_camera, k, rgb.shape[:2])
     pixels = np.zeros((len(cloud), 2), int)
-    pixels[finite] = _project(xyz, to_camera)
+    pixels[finite] = _project(xyz, to_camera, k)
     clusters = [
         _cluster(rgb, pixels[g[seen[g]]], full[g], plane, "cloud", "table",
                  PointCluster(indices=g.astype(np.int32), cloud="cloud"))
         for g in groups
     ]
     log.append(_line(start, f"{len(clusters)} cluster(s): crops, masks, hashes, histograms"))
-    name = f"{cloud_path.parent.name}/{cloud_path.name}".encode()
     return Scene(
-        timestamp=SAMPLE_EPOCH + int.from_bytes(hashlib.sha256(name).digest()[:6], "big"),
+        timestamp=timestamp,
         robot=robot,
         frame="cloud",
         camera_pose=Transform(
             translation=tuple(camera_pose[:3, 3]),
             rotation=tuple(Rotation.from_matrix(camera_pose[:3, :3]).as_quat()),
             frame="cloud", child_frame="camera"),
-        camera=KINECT.model_copy(update={"frame": "camera"}),
+        camera=camera,
         images={"color": Image(data=rgb, encoding="bgr8")},
         clouds={"cloud": PointCloud(points=cloud, frame="cloud")},
         clusters=clusters,
@@ -489,21 +559,23 @@ def _segment(points: np.ndarray, plane) -> list[np.ndarray]:
     return groups
 
 
-def _project(points: np.ndarray, to_camera: np.ndarray) -> np.ndarray:
-    """Integer pixel (u, v) of each point, seen by a camera at `to_camera` (4x4)."""
+def _project(points: np.ndarray, to_camera: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Integer pixel (u, v) of each point, seen by a camera with intrinsics `k` at `to_camera`
+    (4x4)."""
     camera = points @ to_camera[:3, :3].T + to_camera[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        uv = camera @ K.T
+        uv = camera @ k.T
         uv = uv[:, :2] / uv[:, 2:]
     return np.nan_to_num(np.round(uv), nan=-1, posinf=-1, neginf=-1).astype(int)
 
 
-def _visible(points: np.ndarray, to_camera: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def _visible(points: np.ndarray, to_camera: np.ndarray, k: np.ndarray,
+             shape: tuple[int, int]) -> np.ndarray:
     """Which points the camera sees: in the image, in front, and not behind other points. The
     depth buffer is min-filtered so that a surface whose points are sparser than the pixels
     still hides what is behind it."""
     depth = points @ to_camera[2, :3] + to_camera[2, 3]
-    u, v = _project(points, to_camera).T
+    u, v = _project(points, to_camera, k).T
     inside = (depth > 0) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
     nearest = np.full(shape, np.inf, np.float32)
     np.minimum.at(nearest, (v[inside], u[inside]), depth[inside])
@@ -527,7 +599,7 @@ def _colours(cloud: np.ndarray) -> np.ndarray:
 
 
 def _register(points: np.ndarray, colours: np.ndarray, image: np.ndarray,
-              start: np.ndarray) -> tuple[np.ndarray, int] | None:
+              start: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, int] | None:
     """The cloud-to-camera transform (4x4) that makes the cloud line up with the image, and
     its PnP inlier count; None when no view of the cloud matches the image. Views turned
     about the cloud's centre (up to 30 deg, smallest turn first) are rendered and matched to
@@ -543,11 +615,12 @@ def _register(points: np.ndarray, colours: np.ndarray, image: np.ndarray,
         rotation = np.eye(4)
         rotation[:3, :3] = Rotation.from_euler("xy", turn, degrees=True).as_matrix()
         rotation[:3, 3] = centre - rotation[:3, :3] @ centre
-        found = _match(points, colours, image_features, sift, rotation @ start)
+        found = _match(points, colours, image_features, sift, rotation @ start, k,
+                       image.shape[:2])
         if found is None or found[1] < MIN_START_INLIERS:
             continue
         for _ in range(REFINEMENTS):
-            better = _match(points, colours, image_features, sift, found[0])
+            better = _match(points, colours, image_features, sift, found[0], k, image.shape[:2])
             if better is None or better[1] < found[1]:
                 break
             found = better
@@ -556,12 +629,14 @@ def _register(points: np.ndarray, colours: np.ndarray, image: np.ndarray,
     return None
 
 
-def _match(points, colours, image_features, sift, pose) -> tuple[np.ndarray, int] | None:
-    """Render the coloured cloud from `pose`, match SIFT features of the rendering to the
-    image, and solve PnP on the 3D points under the matched features."""
-    height, width = KINECT.height, KINECT.width
+def _match(points, colours, image_features, sift, pose, k,
+           shape: tuple[int, int]) -> tuple[np.ndarray, int] | None:
+    """Render the coloured cloud from `pose` at the image's size (`shape`), match SIFT
+    features of the rendering to the image, and solve PnP on the 3D points under the matched
+    features."""
+    height, width = shape
     depth = points @ pose[2, :3] + pose[2, 3]
-    u, v = _project(points, pose).T
+    u, v = _project(points, pose, k).T
     order = np.argsort(-depth)  # far to near: the nearest point wins its pixel
     order = order[(depth[order] > 0) & (u[order] >= 0) & (u[order] < width)
                   & (v[order] >= 0) & (v[order] < height)]
@@ -589,12 +664,12 @@ def _match(points, colours, image_features, sift, pose) -> tuple[np.ndarray, int
     if len(objects) < 6:
         return None
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
-        np.array(objects), np.array(pixels), K, None, iterationsCount=1000,
+        np.array(objects), np.array(pixels), k, None, iterationsCount=1000,
         reprojectionError=5.0, flags=cv2.SOLVEPNP_AP3P)
     if not ok or inliers is None:
         return None
     chosen = inliers.ravel()
-    rvec, tvec = cv2.solvePnPRefineLM(np.array(objects)[chosen], np.array(pixels)[chosen], K,
+    rvec, tvec = cv2.solvePnPRefineLM(np.array(objects)[chosen], np.array(pixels)[chosen], k,
                                       None, rvec, tvec)
     found = np.eye(4)
     found[:3, :3] = cv2.Rodrigues(rvec)[0]
@@ -655,9 +730,6 @@ def _read_rgb(path: Path) -> np.ndarray:
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in (3, 4):
         raise SampleError(path, "the colour image must be 8-bit RGB, got "
                           f"{image.dtype.itemsize * 8}-bit with {_channels(image)} channel(s)")
-    if image.shape[:2] != (KINECT.height, KINECT.width):
-        raise SampleError(path, f"the image is {image.shape[1]}x{image.shape[0]}; the Kinect "
-                          f"intrinsics are for {KINECT.width}x{KINECT.height}")
     return np.ascontiguousarray(image[:, :, :3])
 
 

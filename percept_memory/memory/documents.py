@@ -286,7 +286,7 @@ def scene_key(scene: Scene | Mapping) -> tuple[str, int]:
 def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     """The denormalised query fields of a cluster."""
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
-    labels = {label.strip().casefold() for a in annotations for label in a.labels() if label}
+    labels = {search_keys.normal_label(label) for a in annotations for label in a.labels()} - {""}
     texts = [text for a in annotations for text in a.texts() if text]
     position = cluster.position
     return {

@@ -27,12 +27,22 @@ from percept_memory.converters import escape_key
 
 _WORD = re.compile(r"[^\W_]+")
 _DIGIT = re.compile(r"\d")
+_CAMEL = re.compile(r"(?<=[a-z])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])")  # fooBar, HTTPServer
+_JOINED = re.compile(r"(?<=[^\W_])[_-]+(?=[^\W_])")  # snake_case, kebab-case
 
 
 def words(text: str) -> list[str]:
     """The terms of a text, casefolded, in order: "Kellogg's Corn-Flakes" -> kellogg, s, corn,
-    flakes. Letters and digits only, so a term is never query syntax."""
-    return _WORD.findall(text.casefold())
+    flakes. Letters and digits only, so a term is never query syntax. Identifiers are words
+    too: "SiggBottle" and "sigg_bottle" -> sigg, bottle, as a person would say them."""
+    return _WORD.findall(_CAMEL.sub(" ", text).casefold())
+
+
+def normal_label(label: str) -> str:
+    """A label as the name it is stored and found by: its identifier parts as words, casefolded,
+    single-spaced ("SiggBottle", "sigg_bottle", " Sigg  bottle" -> "sigg bottle"); other
+    punctuation stays ("kellogg's")."""
+    return " ".join(_JOINED.sub(" ", _CAMEL.sub(" ", label)).casefold().split())
 
 
 def misspellable(word: str) -> bool:

@@ -35,6 +35,7 @@ MAX_LABELS = 500  # labels a text may stand for
 MAX_CANDIDATES = 500  # objects those labels may name
 EVIDENCE = 3  # most recent observations given with a belief
 OBJECT_FIELDS = {"label_weights": 0}
+FULL_NAME_SHARE = 0.25  # of the top name's weight: a name that heavy names the object fully
 
 
 # --- which objects a question is about -------------------------------------------------------
@@ -43,7 +44,8 @@ OBJECT_FIELDS = {"label_weights": 0}
 def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     """The objects X stands for, best first, with how well they match: an object id, a
     cluster id (the object it is believed to be), or text matched against the objects' names
-    (misspellings tolerated); ties go to present objects, then the most recently seen."""
+    (misspellings tolerated); ties go to present objects before hidden ones before gone ones,
+    then to the most recently seen, then to the one seen most often."""
     if ObjectId.is_valid(x):
         return [((yield from _by_id(ObjectId(x))), 1.0)]
     query_words = tuple(dict.fromkeys(words(x)))
@@ -56,19 +58,21 @@ def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     objects = yield Find(OBJECTS, {"names": {"$in": names}}, limit=MAX_CANDIDATES)
     scored = [(o, word_score(expansions, name_words(o)) / len(query_words)) for o in objects]
     scored.sort(key=lambda s: (-s[1], STATE_ORDER.get(s[0].get("state"), 3),
-                               -(s[0].get("last_seen") or 0)))
+                               -(s[0].get("last_seen") or 0), -s[0].get("observations", 0)))
     return scored[:limit]
 
 
 def name_words(o: dict) -> dict[str, float]:
     """The words of an object's names, each weighted by how much its name names the object
-    (its share of the label weights against the top name's: thesis 5.4.5, word statistics),
-    so "mug" finds the object called mug before the cup once taken for a mug."""
+    (thesis 5.4.5, word statistics), so "mug" finds the object called mug before the cup once
+    taken for a mug. A name FULL_NAME_SHARE as heavy as the top one names it fully: two
+    ketchups both called "heinz" and "ketchup" match "ketchup" equally, whatever the shares,
+    and their state decides which comes first; a lighter name counts for its share of that."""
     weights = {unescape_key(k): v for k, v in (o.get("label_weights") or {}).items()}
     top = max(weights.values(), default=0)
     have: dict[str, float] = {}
     for name in o.get("names") or []:
-        weight = weights.get(name, 0) / top if top > 0 else 1.0
+        weight = min(1.0, weights.get(name, 0) / top / FULL_NAME_SHARE) if top > 0 else 1.0
         for word in words(name):
             have[word] = max(have.get(word, 0.0), weight)
     return have

@@ -10,12 +10,14 @@ querying by its fields follow from its annotations. A class may also say
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from functools import lru_cache
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
+from bson import ObjectId
 from pydantic import AliasChoices, Field
 
 from .base import Id, Identifiable, Model, Timestamp, stored_type
@@ -316,6 +318,13 @@ class LookupProvenance(Model):
     job_id: Id | None = None
 
 
+def lookup_annotation_id(job_id: ObjectId, position: int) -> ObjectId:
+    """The id of the `position`-th annotation a lookup job appends: the same on every run (a
+    rerun appends nothing new), and naming finds the job's provenance from it."""
+    digest = hashlib.blake2b(job_id.binary + position.to_bytes(4, "big"), digest_size=8)
+    return ObjectId(job_id.binary[:4] + digest.digest())
+
+
 @stored_type("pm.annotation.WebLookup", aliases=("rs.annotation.Goggles",))
 class WebLookup(Annotation):
     """One result of a web image lookup (thesis 5.4): a category (text, logo, product, similar
@@ -347,9 +356,10 @@ class Tracking(Annotation):
 
 @stored_type("pm.annotation.GroundTruth")
 class GroundTruth(Annotation):
-    """The true class (and pose) of the object, from a labelled data set."""
+    """The true class (and pose) of the object, from a labelled data set: it names the object
+    more surely than any annotator."""
 
-    naming_weight: ClassVar[float] = 2.0
+    naming_weight: ClassVar[float] = 5.0
 
     class_name: str
     pose: Pose | None = None

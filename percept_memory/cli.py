@@ -64,7 +64,16 @@ class _Group(click.Group):
             return super().invoke(ctx)
         except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError,
                 BackendSetupError) as exc:
-            raise click.ClickException(str(exc)) from exc
+            raise click.ClickException(one_line(exc)) from exc
+
+
+def one_line(error: Exception) -> str:
+    """An error as one line: pydantic's as `field: problem; ...` (no input echoed, no URL)."""
+    if isinstance(error, ValidationError):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'input'}: "
+                         f"{e['msg'].removeprefix('Value error, ')}"
+                         for e in error.errors(include_url=False))
+    return " ".join(str(error).split())
 
 
 class _StderrHandler(logging.Handler):
@@ -545,6 +554,8 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
                 summary = export.save(out, lambda done: bar.advance(task, done))
             except FileExistsError as error:
                 raise click.ClickException(str(error)) from None
+            except OSError as error:  # a missing folder, no permission, a full disk
+                raise click.ClickException(f"cannot write {out}: {error.strerror}") from None
     skipped = ", ".join(f"{count} {reason}" for reason, count in sorted(summary.skipped.items()))
     click.echo(f"exported {summary.exported} clusters to {out}"
                + (f" (skipped: {skipped})" if skipped else ""))

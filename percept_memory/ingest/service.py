@@ -21,6 +21,7 @@ from typing import Any, NamedTuple
 from pydantic import ValidationError
 
 from percept_memory.ingest.jobs import LookupEnqueuer
+from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
 from percept_memory.memory.pipeline import Pipeline
@@ -34,13 +35,14 @@ UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a f
 
 class IngestError(ValueError):
     """Input that is not a valid scene. `problems` holds one entry per problem: which item of
-    the batch, the field path (e.g. `clusters.0.annotations.2.confidence`) and what is wrong."""
+    the batch, the field path (e.g. `clusters.0.annotations.2.confidence`) and what is wrong.
+    The message is one line (the CLI prints it as `Error: ...`)."""
 
     def __init__(self, problems: list[dict]):
         self.problems = problems
-        lines = [f"{p['item']}: {p['path'] or '(scene)'}: {p['message']}" for p in problems[:10]]
-        more = f"\n... and {len(problems) - 10} more" if len(problems) > 10 else ""
-        super().__init__(f"{len(problems)} problem(s) in the input:\n" + "\n".join(lines) + more)
+        named = [f"{p['item']}: {p['path'] or '(scene)'}: {p['message']}" for p in problems[:10]]
+        more = f"; ... and {len(problems) - 10} more" if len(problems) > 10 else ""
+        super().__init__(f"{len(problems)} problem(s) in the input: " + "; ".join(named) + more)
 
 
 class SourceError(ValueError):
@@ -52,7 +54,7 @@ def problems_of(error: ValidationError, item: Any) -> list[dict]:
     """pydantic's errors as IngestError problems (no input values echoed back)."""
     return [
         {"item": item, "path": ".".join(str(p) for p in e["loc"] if p not in UNION_TAGS),
-         "message": e["msg"], "type": e["type"]}
+         "message": e["msg"].removeprefix("Value error, "), "type": e["type"]}
         for e in error.errors(include_url=False, include_input=False)
     ]
 
@@ -66,6 +68,8 @@ def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 
         raise IngestError([{"item": item, "path": "", "message":
                             f"a scene is a JSON object, not {type(data).__name__}",
                             "type": "model_type"}])
+    if problems := input_problems(data):
+        raise IngestError([{"item": item, **problem} for problem in problems])
     try:
         return Scene.model_validate(dict(data), context=dict(context or {}))
     except ValidationError as error:
@@ -76,10 +80,13 @@ class IngestService:
     """Brings scenes into a MemoryStore."""
 
     def __init__(self, store: MemoryStore, *, pipeline: Pipeline | None = None,
-                 batch_size: int = DEFAULT_BATCH):
+                 batch_size: int = DEFAULT_BATCH, settings: Settings | None = None):
+        settings = settings or Settings()
         self.store = store
-        self.pipeline = pipeline or memory_pipeline(store)
+        self.pipeline = pipeline or memory_pipeline(store, settings)
         self.batch_size = batch_size
+        self.limits = {"max_image_pixels": settings.max_image_pixels,
+                       "max_crop_pixels": settings.max_crop_pixels}  # for validation
 
     def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
                wait: float | None = None) -> SceneIds:
@@ -137,8 +144,8 @@ class IngestService:
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
         return list(map(Ingested, scenes, self._stored(write.result())))
 
-    @staticmethod
-    def _validated(items, context, labels) -> list[Scene]:
+    def _validated(self, items, context, labels) -> list[Scene]:
+        context = {**self.limits, **(context or {})}
         scenes, problems = [], []
         for index, data in enumerate(items):
             try:

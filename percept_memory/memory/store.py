@@ -133,8 +133,9 @@ class MemoryStore(StoreBase):
 
         settings = settings or Settings()
         uri = resolve_uri(settings)
-        store = cls(MongoClient(uri, **CLIENT_OPTIONS), settings.db,
-                    gridfs_threshold=settings.gridfs_threshold)
+        client = MongoClient(uri, serverSelectionTimeoutMS=settings.mongo_timeout_ms,
+                             **CLIENT_OPTIONS)
+        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
         try:
             store.prepare()
         except PyMongoError as error:

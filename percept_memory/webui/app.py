@@ -7,7 +7,6 @@ and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 
 from __future__ import annotations
 
-import json
 import secrets
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
@@ -16,17 +15,20 @@ from fastapi import FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
+from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
 
 from percept_memory.ingest.jobs import State, job_report
+from percept_memory.ingest.json_input import loads
 from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
+from percept_memory.memory.errors import StoreError
 from percept_memory.memory.pipeline import status as pipeline_status
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from .errors import ApiError, error_response
+from .errors import UNAVAILABLE, ApiError, error_response, store_status
 from .export_api import export_router
 from .guard import Guard
 from .html import API_DOCS_CSP, page
@@ -57,7 +59,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.add_middleware(Guard, settings=settings)  # who may talk to the app: guard.py
-    service = IngestService(store, pipeline=pipeline)
+    service = IngestService(store, pipeline=pipeline, settings=settings)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
     mount_pages(app, store, settings)  # the HTML pages (pages.py)
@@ -65,6 +67,14 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:
         return error_response(error.status, error.message, error.problems)
+
+    @app.exception_handler(StoreError)
+    async def _store_error(request: Request, error: StoreError) -> JSONResponse:
+        return error_response(store_status(error), str(error))
+
+    @app.exception_handler(AutoReconnect)  # no server to select, or a connection lost
+    async def _unavailable(request: Request, error: AutoReconnect) -> JSONResponse:
+        return error_response(503, UNAVAILABLE)
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
@@ -164,6 +174,6 @@ async def _read_body(request: Request, max_bytes: int) -> bytes:
 
 def _parse_json(body: bytes) -> Any:
     try:
-        return json.loads(body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        return loads(body)
+    except ValueError as error:
         raise ApiError(422, f"the body is not valid JSON: {error}") from None

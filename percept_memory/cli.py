@@ -200,9 +200,15 @@ def ingest_with_progress(
         with progress_bar(source) as progress:
             task = progress.add_task(source, total=None)
             service = IngestService(store, pipeline=pipeline)
-            for ingested in service.ingest_stream(items, context):
-                summary.add(ingested)
-                progress.advance(task)
+            try:
+                for ingested in service.ingest_stream(items, context):
+                    summary.add(ingested)
+                    progress.advance(task)
+            except IngestError as error:  # never a silent partial import
+                raise click.ClickException(
+                    f"{one_line(error)}. Nothing from there on was stored; stored before "
+                    f"it: {summary.scenes_new} new {_plural(summary.scenes_new, 'scene')} "
+                    "(importing again skips them)") from None
     finally:
         pipeline.stop()
     drain_with_progress(store, pipeline)

@@ -120,26 +120,37 @@ class IngestService:
     ) -> Iterator[Ingested]:
         """Store a long stream of (label, scene) batch by batch (importers, the demo),
         yielding each scene with its ids as its batch lands. Labels name items in errors.
+        An invalid batch is not stored; every scene before it is, and is yielded before the
+        IngestError is raised, so the caller can say exactly what was stored.
 
         Pipelined: while a writer thread commits one batch (pymongo waits on the server
         without holding the GIL), this thread validates and encodes the next one."""
-        iterator = iter(items)
         landed: list[Ingested] = []
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmem-writer") as writer:
             pending: tuple[list[Scene], Future] | None = None
             try:
-                while batch := list(islice(iterator, self.batch_size)):
-                    scenes = self._validated([data for _, data in batch], context,
-                                             [label for label, _ in batch])
+                for scenes in self._batches(items, context):
                     prepared = self.store.prepare_scenes(scenes)
                     if pending is not None:
                         previous, pending = pending, None
                         yield from self._landed(*previous)
                     pending = (scenes, writer.submit(self.store.commit_scenes, prepared))
+            except IngestError:
+                if pending is not None:
+                    previous, pending = pending, None
+                    yield from self._landed(*previous)
+                raise
             finally:
-                if pending is not None:  # lands even if a later batch was invalid or the
-                    landed = self._landed(*pending)  # caller stopped
+                if pending is not None:  # lands even if the caller stopped
+                    landed = self._landed(*pending)
         yield from landed
+
+    def _batches(self, items: Iterable[tuple[str, Scene | Mapping]],
+                 context: Mapping | None) -> Iterator[list[Scene]]:
+        iterator = iter(items)
+        while batch := list(islice(iterator, self.batch_size)):
+            yield self._validated([data for _, data in batch], context,
+                                  [label for label, _ in batch])
 
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
         return list(map(Ingested, scenes, self._stored(write.result())))

@@ -44,6 +44,10 @@ def duplicate_key(error: Exception) -> dict | None:
     return None
 
 
+class Unavailable(StoreError):
+    """No MongoDB server could be selected for a write (PMEM_MONGO_TIMEOUT_MS)."""
+
+
 class TooLarge(StoreError):
     """A document is over MongoDB's 16 MB limit."""
 

@@ -9,7 +9,13 @@ from collections.abc import Mapping
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
 
-from percept_memory.memory.errors import DuplicateId, NotFound, TooLarge, TransactionTooLarge
+from percept_memory.memory.errors import (
+    DuplicateId,
+    NotFound,
+    TooLarge,
+    TransactionTooLarge,
+    Unavailable,
+)
 
 
 class ApiError(Exception):
@@ -32,6 +38,8 @@ def store_status(error: Exception) -> int:
         return 413
     if isinstance(error, DuplicateId):
         return 409
+    if isinstance(error, Unavailable):
+        return 503
     return 404 if isinstance(error, NotFound) else 500
 
 

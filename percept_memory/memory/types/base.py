@@ -62,10 +62,14 @@ def _not_a_bool(value: Any) -> Any:
     return value
 
 
+MAX_TIMESTAMP = (2**63 - 1) // 10**9 * 10**9
+"""2262-04-11T23:47:16Z, the last whole second int64 nanoseconds hold (pages round a time up
+to whole seconds)."""
+
 Timestamp = Annotated[
     int,
     BeforeValidator(_not_a_bool),
-    Field(ge=0, lt=2**63, description="nanoseconds since the Unix epoch, UTC"),
+    Field(ge=0, le=MAX_TIMESTAMP, description="nanoseconds since the Unix epoch, UTC"),
 ]
 """Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it (1970 to 2262)."""
 

@@ -62,3 +62,26 @@ class ErrorResponse(BaseModel):
     """What every error answer holds (the OpenAPI description's error responses)."""
 
     error: ErrorBody
+
+
+MEANINGS = {
+    400: "the Host header names a host this server does not answer for",
+    401: "this server needs a write token (Authorization: Bearer <token>)",
+    403: "the write token is wrong, or the request comes from a page of another origin",
+    404: "no such object, cluster or scene",
+    409: "an id in the body is already used by another stored document",
+    413: "the body, or a value in it, is over a limit",
+    415: "the body is not Content-Type: application/json",
+    422: "the request is not valid: `problems` names each field and what is wrong",
+    503: "the database does not answer",
+}
+
+
+def error_responses(*statuses: int) -> dict:
+    """The OpenAPI `responses` of these error statuses, each with the one error shape."""
+    return {status: {"model": ErrorResponse, "description": MEANINGS[status]}
+            for status in statuses}
+
+
+READ_ERRORS = error_responses(400, 404, 422, 503)
+WRITE_ERRORS = error_responses(400, 401, 403, 404, 409, 413, 415, 422, 503)

@@ -4,6 +4,7 @@ input gets a 422 naming the field instead of a server error (README: Security).
 - parsing: text nested too deeply for Python's parser is refused, not a RecursionError;
 - nesting: at most MAX_DEPTH levels (MongoDB refuses documents deeper than 100, and a scene's
   clusters are stored a few levels down; a scene needs about 10);
+- integers: 64 bits at most (MongoDB's);
 - strings: UTF-8 encodable (no lone surrogate such as "\\ud800"), at most MAX_STRING
   characters (pixels and array bytes in base64 aside: their own limits apply);
 - field names: no NUL, none starting with `$` (MongoDB's operators).
@@ -47,9 +48,12 @@ def input_problems(data: Any) -> list[dict]:
                     stack.append(((*path, key), item))
         elif isinstance(value, list):
             stack.extend(((*path, index), item) for index, item in enumerate(value)
-                         if isinstance(item, dict | list | str))
+                         if isinstance(item, dict | list | str | int))
         elif isinstance(value, str) and (message := _bad_text(value)):
             problems.append(_problem(path, message))
+        elif isinstance(value, int) and not -(2**63) <= value < 2**63:
+            problems.append(_problem(path, "an integer beyond 64 bits (MongoDB stores at "
+                                           "most -2**63 to 2**63 - 1)"))
     return problems
 
 
@@ -71,4 +75,5 @@ def _bad_text(text: str) -> str | None:
 
 
 def _problem(path: tuple, message: str) -> dict:
-    return {"path": ".".join(map(str, path)), "message": message, "type": "json_invalid"}
+    named = ".".join(map(str, path)).encode("utf-8", "backslashreplace").decode("utf-8")
+    return {"path": named, "message": message, "type": "json_invalid"}

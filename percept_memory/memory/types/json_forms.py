@@ -127,7 +127,8 @@ def image_from_json(data: Any, info: ValidationInfo) -> Any:
     try:
         pixels = decode_file(encoded, fields.get("encoding", "bgr8"), image_limit(info))
     except ConversionError as error:
-        raise ValueError(f"the {key} image {error}") from None
+        what = f"image file {data['path']!r}" if key == "path" else f"{key} image"
+        raise ValueError(f"the {what} {error}") from None
     return {**fields, "data": pixels}
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import base64
 import copy
 import json
+import struct
 
 import cv2
 import numpy as np
@@ -152,6 +153,9 @@ CORPUS = [(name, path, value, where) for name, path, value, where, _ in MALFORME
     ("16000 x 16000 scene image", "images.color", image(png=png(16000, 16000),
                                                         encoding="mono8"), "images.color"),
     ("2500 x 2500 crop", CROP, image(png=png(2500, 2500), encoding="mono8"), CROP),
+    ("JPEG whose header says 20000 x 20000", CROP, image(jpeg=b64(
+        b"\xff\xd8\xff\xc0" + struct.pack(">HBHHB", 11, 8, 20_000, 20_000, 1) + b"\0" * 3)),
+     CROP),
     ("crop without pixels", CROP,
      image(data={"dtype": "|u1", "shape": [0, 0, 3], "base64": ""}), f"{CROP}.data"),
     ("crop as png and path", f"{CROP}.path", "crop.png", CROP),

@@ -42,8 +42,8 @@ def input_problems(data: Any) -> list[dict]:
             problems.append(_problem(path, f"nested too deeply (at most {MAX_DEPTH} levels)"))
         elif isinstance(value, dict):
             for key, item in value.items():
-                if message := _bad_key(str(key)):
-                    problems.append(_problem((*path, key), message))
+                if message := _bad_key(str(key)):  # named by the object that has it
+                    problems.append(_problem(path, message))
                 elif key not in BASE64_KEYS or not isinstance(item, str):
                     stack.append(((*path, key), item))
         elif isinstance(value, list):
@@ -59,8 +59,10 @@ def input_problems(data: Any) -> list[dict]:
 
 def _bad_key(key: str) -> str | None:
     if "\0" in key or key.startswith("$"):
-        return f"field name {key[:40]!r} holds a NUL or starts with '$'"
-    return _bad_text(key)
+        return f"the field name {key[:40]!r} holds a NUL or starts with '$'"
+    if message := _bad_text(key):
+        return f"a field name: {message}"
+    return None
 
 
 def _bad_text(text: str) -> str | None:
@@ -75,5 +77,4 @@ def _bad_text(text: str) -> str | None:
 
 
 def _problem(path: tuple, message: str) -> dict:
-    named = ".".join(map(str, path)).encode("utf-8", "backslashreplace").decode("utf-8")
-    return {"path": named, "message": message, "type": "json_invalid"}
+    return {"path": ".".join(map(str, path)), "message": message, "type": "json_invalid"}

@@ -61,7 +61,7 @@ def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
 def image_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) of PNG or JPEG bytes read from the header (PNG's IHDR chunk, JPEG's
     start-of-frame segment) without decoding a pixel; None for anything else."""
-    if data.startswith(PNG_SIGNATURE) and data[12:16] == b"IHDR":
+    if data.startswith(PNG_SIGNATURE) and data[12:16] == b"IHDR" and len(data) >= 24:
         return struct.unpack(">II", data[16:24])
     if not data.startswith(b"\xff\xd8"):
         return None

@@ -64,7 +64,7 @@ from pymongo.errors import PyMongoError
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
 from percept_memory.ingest.service import SourceError, in_map
-from percept_memory.memory.errors import redacted
+from percept_memory.memory.errors import reason, redacted
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,
@@ -143,9 +143,8 @@ def read_database(uri: str, db: str, robot: str = "pr2", map_name: str | None = 
         try:
             names = [n for n in database.list_collection_names() if not n.startswith("system.")]
         except PyMongoError as error:
-            reason = str(error).split(" (configured timeouts")[0]  # not the topology dump
             raise SourceError(f"cannot read the RoboSherlock database at {redacted(uri)}: "
-                              f"{reason}") from None
+                              f"{reason(error)}") from None
         yield from in_map(read_collections({name: database[name].find() for name in names},
                                            robot), map_name or f"robosherlock/{db}")
 

@@ -99,10 +99,14 @@ def redacted(uri: str) -> str:
     return f"{scheme}{sep}{credentials.split(':', 1)[0]}:***@{hosts}"
 
 
+def reason(error: Exception) -> str:
+    """What pymongo says went wrong, without its dump of timeouts and topology."""
+    return str(error).split(" (configured timeouts")[0]
+
+
 def unreachable(uri: str, error: Exception) -> StoreError:
     """The database at `uri` could not be used at all."""
-    reason = str(error).split(" (configured timeouts")[0]  # not pymongo's topology dump
     return StoreError(
-        f"cannot use MongoDB at {redacted(uri)}: {reason}. Check MONGODB_URI, or unset it to "
-        "use the embedded mongod"
+        f"cannot use MongoDB at {redacted(uri)}: {reason(error)}. Check MONGODB_URI, or unset "
+        "it to use the embedded mongod"
     )

@@ -31,6 +31,7 @@ from .errors import (
     TransactionTooLarge,
     Unavailable,
     duplicate_key,
+    reason,
     require_replica_set,
     too_large,
     transaction_too_large,
@@ -371,14 +372,14 @@ class MemoryStore(StoreBase):
         """Run work(session) in a transaction. pymongo retries it for two minutes while no
         server can be selected; with `retry_unreachable=False` that is an Unavailable error
         at once instead (an ingest's caller decides whether to send again)."""
+
         def attempt(session):
             try:
                 return work(session)
             except ServerSelectionTimeoutError as error:
                 if retry_unreachable:
                     raise
-                raise Unavailable(f"not stored: {error}".split(" (configured timeouts")[0]
-                                  ) from None
+                raise Unavailable(f"not stored: {reason(error)}") from None
 
         with self.client.start_session() as session:
             return session.with_transaction(attempt)

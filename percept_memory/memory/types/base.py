@@ -56,6 +56,7 @@ Id = Annotated[
 ]
 """A MongoDB ObjectId; JSON carries it as 24 hex digits."""
 
+
 def _not_a_bool(value: Any) -> Any:
     if isinstance(value, bool):  # an int to Python: `true` would be stored as 1 ns
         raise ValueError("a timestamp is an integer, not true or false")

@@ -94,10 +94,10 @@ class Scene(Identifiable):
 
 def _once(ids: list, where: str) -> None:
     seen = set()
-    for id in ids:
-        if id is not None and id in seen:
-            raise ValueError(f"{where}: the id {id} is given twice")
-        seen.add(id)
+    for given in ids:
+        if given is not None and given in seen:
+            raise ValueError(f"{where}: the id {given} is given twice")
+        seen.add(given)
 
 
 def default_map(robot: str, frame: str) -> str:

@@ -52,8 +52,8 @@ def input_problems(data: Any) -> list[dict]:
         elif isinstance(value, str) and (message := _bad_text(value)):
             problems.append(_problem(path, message))
         elif isinstance(value, int) and not -(2**63) <= value < 2**63:
-            problems.append(_problem(path, "an integer beyond 64 bits (MongoDB stores at "
-                                           "most -2**63 to 2**63 - 1)"))
+            problems.append(_problem(path, "an integer beyond MongoDB's 64 bits: it must be "
+                                           "at least -2**63 and less than 2**63"))
     return problems
 
 

@@ -47,6 +47,17 @@ def test_volumes_and_points_as_far_as_floats_go_find_the_far_cluster(client, far
     assert far_cluster in [item["id"] for item in response.json()["items"]]
 
 
+@pytest.mark.parametrize("path, extra", [("/api/clusters", {}), ("/api/stats/annotations", {}),
+                                         ("/api/what-is-at", {}), ("/api/changes", {"t1": 0}),
+                                         ("/api/export", {"format": "jsonl"})])
+def test_a_sphere_reaching_past_the_largest_float_is_answered(client, far_cluster, path,
+                                                              extra):
+    sphere = {"center": [FAR, 0, -FAR], "radius": FAR}
+    assert client.post(path, json={"sphere": sphere, **extra}).status_code == 200
+    assert client.get(path, params={"sphere": f"{FAR},0,{-FAR},{FAR}", **extra}
+                      ).status_code == 200
+
+
 def test_an_export_of_everything_holds_the_far_cluster(client, far_cluster):
     response = client.post("/api/export", json={
         "format": "jsonl", "sphere": {"center": [0, 0, 0], "radius": FAR}})

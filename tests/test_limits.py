@@ -96,3 +96,9 @@ def test_without_a_database_reads_and_writes_get_a_prompt_503():
         assert response.json()["error"]["status"] == 503
         assert time.monotonic() - started < 5
     client.close()
+
+
+def test_an_export_limit_beyond_64_bits_is_refused_by_name(client):
+    response = client.get("/api/export", params={"format": "jsonl", "limit": 2**64})
+    assert response.status_code == 422
+    assert response.json()["error"]["problems"][0]["path"] == "limit"

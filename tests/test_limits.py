@@ -17,7 +17,7 @@ from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL
 from .test_ingest import STAMP, valid_scene
-from .test_malformed import CROP, png, spoilt
+from .test_malformed import CROP, counts, png, spoilt
 from .test_mongod import free_port
 
 FAR = 1e308
@@ -102,3 +102,14 @@ def test_an_export_limit_beyond_64_bits_is_refused_by_name(client):
     response = client.get("/api/export", params={"format": "jsonl", "limit": 2**64})
     assert response.status_code == 422
     assert response.json()["error"]["problems"][0]["path"] == "limit"
+
+
+def test_a_cluster_over_mongodbs_document_limit_gets_413_and_stores_nothing(client, store):
+    scene = valid_scene(seed=5, timestamp=STAMP + 5)
+    scene["clusters"][0]["annotations"] += [
+        {"_type": "pm.annotation.Text", "source": "OCR", "text": "y" * 1_000_000}] * 17
+    before = counts(store)
+    response = client.post("/api/scenes", json=scene)
+    assert response.status_code == 413
+    assert "16 MB limit" in response.json()["error"]["message"]
+    assert counts(store) == before

@@ -53,8 +53,9 @@ class TooLarge(StoreError):
 
     def __init__(self, threshold: int):
         super().__init__(
-            "not stored: a document would exceed MongoDB's 16 MB limit; set "
-            f"PMEM_GRIDFS_THRESHOLD below {threshold} bytes so large values go to GridFS"
+            "not stored: a scene or a cluster with its annotations would exceed MongoDB's 16 MB "
+            "limit for one document; images and arrays over PMEM_GRIDFS_THRESHOLD "
+            f"({threshold} bytes) go to GridFS, texts do not"
         )
 
 

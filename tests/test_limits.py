@@ -1,5 +1,6 @@
 """What the app survives beyond malformed scenes (test_malformed.py): positions as far as a
-float goes, a database that does not answer, the image limits' settings, an empty queue."""
+float goes (in queries, exports and pages), a database that does not answer, the image limits'
+settings, documents over MongoDB's limit, an empty queue."""
 
 from __future__ import annotations
 
@@ -13,9 +14,10 @@ from pymongo import MongoClient
 
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.memory.types import Scene
 from percept_memory.webui.app import create_app
 
-from .conftest import LOCAL
+from .conftest import LOCAL, ingest_consolidated
 from .test_ingest import STAMP, valid_scene
 from .test_malformed import CROP, counts, png, spoilt
 from .test_mongod import free_port
@@ -113,3 +115,16 @@ def test_a_cluster_over_mongodbs_document_limit_gets_413_and_stores_nothing(clie
     assert response.status_code == 413
     assert "16 MB limit" in response.json()["error"]["message"]
     assert counts(store) == before
+
+
+def test_the_map_and_object_pages_draw_positions_as_far_apart_as_floats_go(client, store):
+    scenes = []
+    for i, position in enumerate([[FAR, -FAR, 0.0], [-FAR, FAR, FAR]]):
+        scene = valid_scene(seed=6, timestamp=STAMP + 60 + i)
+        scene["map"] = "far"
+        scene["clusters"][0]["annotations"][0]["position"] = position
+        scenes.append(Scene.model_validate(scene))
+    ingest_consolidated(store, scenes)
+    object_id = store.clusters.find_one({"_id": scenes[0].clusters[0].id})["object_id"]
+    assert client.get("/map", params={"map": "far"}).status_code == 200
+    assert client.get(f"/objects/{object_id}").status_code == 200

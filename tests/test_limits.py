@@ -15,6 +15,7 @@ from pymongo import MongoClient
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import Scene
+from percept_memory.memory.types.base import MAX_TIMESTAMP
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated
@@ -128,3 +129,16 @@ def test_the_map_and_object_pages_draw_positions_as_far_apart_as_floats_go(clien
     object_id = store.clusters.find_one({"_id": scenes[0].clusters[0].id})["object_id"]
     assert client.get("/map", params={"map": "far"}).status_code == 200
     assert client.get(f"/objects/{object_id}").status_code == 200
+
+
+def test_the_last_timestamp_of_the_range_is_shown_on_every_page(client, store):
+    """2262-04-11T23:47:16Z: pages round times up to whole seconds, and this one still fits
+    int64 nanoseconds (one nanosecond later is refused: test_malformed.py)."""
+    scene = valid_scene(seed=7, timestamp=MAX_TIMESTAMP)
+    scene["map"] = "late"
+    validated = Scene.model_validate(scene)
+    ingest_consolidated(store, [validated])
+    object_id = store.clusters.find_one({"_id": validated.clusters[0].id})["object_id"]
+    for path in ("/map?map=late", f"/objects/{object_id}", f"/scenes/{validated.id}",
+                 "/scenes", "/api/what-is-at?map=late&region=counter_top_island"):
+        assert client.get(path).status_code == 200, path

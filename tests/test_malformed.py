@@ -19,6 +19,7 @@ from fastapi.testclient import TestClient
 
 from percept_memory.cli import main
 from percept_memory.memory.settings import Settings
+from percept_memory.memory.types.base import MAX_TIMESTAMP
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL
@@ -89,7 +90,8 @@ CORPUS = [(name, path, value, where) for name, path, value, where, _ in MALFORME
     ("timestamp true", "timestamp", True, "timestamp"),
     ("timestamp false", "timestamp", False, "timestamp"),
     ("timestamp with a fraction", "timestamp", 1.5, "timestamp"),
-    ("timestamp past 2262", "timestamp", 2**63 - 1, "timestamp"),
+    ("timestamp a nanosecond past 2262-04-11T23:47:16Z", "timestamp", MAX_TIMESTAMP + 1,
+     "timestamp"),
     ("timestamp 1e30", "timestamp", 1e30, "timestamp"),
     ("timestamp null", "timestamp", None, "timestamp"),
     ("confidence as a word", f"{A}.1.confidence", "high", f"{A}.1.confidence"),

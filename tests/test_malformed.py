@@ -14,15 +14,14 @@ import struct
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from fastapi.testclient import TestClient
 
-from percept_memory.cli import main
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types.base import MAX_TIMESTAMP
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL
+from .test_cli import error_line, pmem
 from .test_ingest import MALFORMED, STAMP, valid_scene
 
 DELETE = MALFORMED[0][2]  # the marker test_ingest's table uses for "remove this field"
@@ -244,21 +243,13 @@ def test_post_refuses_what_is_not_a_scene(client, store, name, text, words):
     assert words in json.dumps(refused_over_http(client, store, text))
 
 
-def imported(tmp_path, mongo_uri, db_name, text: str):
-    (tmp_path / "scene.json").write_text(text, encoding="utf-8", errors="surrogatepass")
-    return CliRunner().invoke(main, ["import", "scene-log", str(tmp_path)],
-                              env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
-
-
 def refused_by_import(tmp_path, mongo_uri, db_name, store, text: str) -> str:
+    (tmp_path / "scene.json").write_text(text, encoding="utf-8")
     before = counts(store)
-    result = imported(tmp_path, mongo_uri, db_name, text)
-    assert result.exit_code == 1, result.output
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
-    assert "Traceback" not in result.output
+    line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
+                           PMEM_DB=db_name))
     assert counts(store) == before
-    return lines[0]
+    return line
 
 
 @pytest.mark.parametrize("name, path, value, where", CORPUS, ids=[c[0] for c in CORPUS])

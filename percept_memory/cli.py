@@ -50,7 +50,16 @@ class _Group(click.Group):
             return super().invoke(ctx)
         except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError,
                 BackendSetupError) as exc:
-            raise click.ClickException(str(exc)) from exc
+            raise click.ClickException(one_line(exc)) from exc
+
+
+def one_line(error: Exception) -> str:
+    """An error as one line: pydantic's as `field: problem; ...` (no input echoed, no URL)."""
+    if isinstance(error, ValidationError):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'input'}: "
+                         f"{e['msg'].removeprefix('Value error, ')}"
+                         for e in error.errors(include_url=False))
+    return " ".join(str(error).split())
 
 
 class _StderrHandler(logging.Handler):
@@ -190,9 +199,15 @@ def ingest_with_progress(store, source: str, items, context: dict | None = None)
         with progress_bar(source) as progress:
             task = progress.add_task(source, total=None)
             service = IngestService(store, pipeline=pipeline)
-            for ingested in service.ingest_stream(items, context):
-                summary.add(ingested)
-                progress.advance(task)
+            try:
+                for ingested in service.ingest_stream(items, context):
+                    summary.add(ingested)
+                    progress.advance(task)
+            except IngestError as error:  # never a silent partial import
+                raise click.ClickException(
+                    f"{one_line(error)}. Nothing from there on was stored; stored before "
+                    f"it: {summary.scenes_new} new {_plural(summary.scenes_new, 'scene')} "
+                    "(importing again skips them)") from None
     finally:
         pipeline.stop()
     drain_with_progress(store, pipeline)
@@ -698,6 +713,8 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
                 summary = export.save(out, lambda done: bar.advance(task, done))
             except FileExistsError as error:
                 raise click.ClickException(str(error)) from None
+            except OSError as error:  # a missing folder, no permission, a full disk
+                raise click.ClickException(f"cannot write {out}: {error.strerror}") from None
     if not summary.exported:
         raise click.ClickException(f"{summary.why_empty()} (see {out}'s manifest.json)")
     click.echo(f"exported {summary.exported} clusters to {out}"

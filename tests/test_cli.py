@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -164,3 +165,89 @@ def test_job_states_are_those_of_the_queue():
     from percept_memory.ingest.jobs import STATES
 
     assert JOB_STATES == STATES
+
+
+def error_line(result) -> str:
+    """The one line an expected failure prints: `Error: ...`, exit code 1, no traceback."""
+    assert result.exit_code == 1, result.output
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
+    assert "Traceback" not in result.output
+    return lines[0]
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--after", "yesterday"], "after: expected nanoseconds since the epoch or an ISO 8601"),
+    (["--box", "1,2"], "box: expected a box x0,y0,z0,x1,y1,z1"),
+    (["--limit", "0"], "limit: Input should be greater than or equal to 1"),
+    (["--sphere", "0,0,0", "--limit", "x"], "sphere: "),
+])
+def test_bad_query_options_are_one_line_naming_the_option(mongo_uri, db_name, options, words):
+    line = error_line(pmem("query", "clusters", *options, MONGODB_URI=mongo_uri, PMEM_DB=db_name))
+    assert words in line and "errors.pydantic.dev" not in line
+
+
+def test_export_to_a_missing_folder_or_over_a_file_is_one_line(mongo_uri, db_name, tmp_path):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    missing = tmp_path / "missing" / "x.zip"
+    line = error_line(pmem("export", "jsonl", "--out", str(missing), **env))
+    assert f"cannot write {missing}: No such file or directory" in line
+    (tmp_path / "taken.zip").write_bytes(b"keep me")
+    assert "File exists" in error_line(pmem("export", "jsonl", "--out",
+                                            str(tmp_path / "taken.zip"), **env))
+    assert (tmp_path / "taken.zip").read_bytes() == b"keep me"
+    (tmp_path / "taken").write_text("keep me")
+    assert "exists and is not an empty folder" in error_line(
+        pmem("export", "jsonl", "--out", str(tmp_path / "taken"), **env))
+
+
+def test_an_unreachable_robosherlock_uri_is_one_line_within_seconds(mongo_uri, db_name):
+    started = time.monotonic()
+    line = error_line(pmem("import", "robosherlock", "--uri", f"mongodb://127.0.0.1:{free_port()}",
+                           "--db", "rs", MONGODB_URI=mongo_uri, PMEM_DB=db_name))
+    assert "cannot read the RoboSherlock database at mongodb://127.0.0.1:" in line
+    assert time.monotonic() - started < 20
+
+
+def scene_line(seed: int) -> str:
+    scene = synthetic.scene(np.random.default_rng(seed), 7_000 + seed, 1)
+    return scene.model_dump_json(by_alias=True)
+
+
+@pytest.mark.parametrize("name, write, words", [
+    ("UTF-16", lambda path: path.write_text(scene_line(1), encoding="utf-16"),
+     "scene.json: (scene): is not UTF-8 text"),
+    ("Latin-1", lambda path: path.write_bytes('{"robot": "Jürgen"}'.encode("latin-1")),
+     "scene.json: (scene): is not UTF-8 text"),
+    ("a FIFO", lambda path: os.mkfifo(path), "scene.json: (scene): is not a regular file"),
+])
+def test_scene_files_that_cannot_be_read_are_named(mongo_uri, db_name, tmp_path, name, write,
+                                                   words):
+    write(tmp_path / "scene.json")
+    line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
+                           PMEM_DB=db_name))
+    assert words in line
+
+
+def test_a_zero_byte_image_file_is_named(mongo_uri, db_name, tmp_path):
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "crop.png").write_bytes(b"")
+    scene = json.loads(scene_line(2))
+    scene["clusters"][0]["hypotheses"][0]["crop"] = {"path": "images/crop.png"}
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
+                           PMEM_DB=db_name))
+    assert "clusters.0.hypotheses.0.crop: the image file 'images/crop.png' is empty" in line
+
+
+def test_an_import_stopped_by_a_bad_line_says_what_it_stored(mongo_uri, db_name, tmp_path,
+                                                             store):
+    lines = [scene_line(100 + i) for i in range(45)]
+    lines[40] = '{"robot": "pr2"}'
+    (tmp_path / "log.jsonl").write_text("\n".join(lines) + "\n")
+    line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
+                           PMEM_DB=db_name))
+    assert "log.jsonl:41: timestamp: Field required" in line
+    assert "stored before it: 32 new scenes" in line  # the batches of 32 before line 41's
+    stored = store.scenes.count_documents({"timestamp": {"$gte": 7_100, "$lt": 7_145}})
+    assert stored == 32

@@ -21,6 +21,7 @@ from percept_memory.converters import (
     register_type,
     registered_types,
 )
+from percept_memory.converters.images import image_size
 from percept_memory.memory.types import (
     Classification,
     Cluster,
@@ -248,3 +249,11 @@ def test_validation_dispatches_on_type_and_names_the_field():
         Cluster.model_validate(
             {"annotations": [{"_type": "pm.annotation.Location", "position": [1, "x", 3]}]}
         )
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+@pytest.mark.parametrize("shape", [(480, 640, 3), (7, 1, 3), (1, 3000)])
+def test_image_sizes_are_read_from_the_header(suffix, shape):
+    encoded = cv2.imencode(suffix, np.zeros(shape, np.uint8))[1].tobytes()
+    assert image_size(encoded) == (shape[1], shape[0])
+    assert image_size(b"GIF89a") is None and image_size(encoded[:3]) is None

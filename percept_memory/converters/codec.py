@@ -28,6 +28,10 @@ from .blobs import ConversionError, DecodeContext, EncodeContext
 from .registry import Typed, class_for, close_names, is_reserved, name_of
 
 TYPE_KEY = "_type"
+TYPE_NAME = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)*", re.ASCII)
+"""A type name is a dotted identifier (`lab.annotation.Weight`): the types catalogue and the
+search keys use it as a key, so no `$`, path or empty name gets there."""
+MAX_TYPE_NAME = 200
 
 
 class ForeignCodec(Protocol):
@@ -76,6 +80,10 @@ class Unknown(Typed):
         name = data[TYPE_KEY]
         if not isinstance(name, str) or class_for(name) is not None:
             raise ValueError(f"{TYPE_KEY} {name!r} is a registered type; its fields do not fit")
+        if not TYPE_NAME.fullmatch(name) or len(name) > MAX_TYPE_NAME:
+            raise ValueError(f"{TYPE_KEY} {name[:MAX_TYPE_NAME]!r} is not a type name: a dotted "
+                             f"identifier such as 'lab.annotation.Weight', at most "
+                             f"{MAX_TYPE_NAME} characters")
         if is_reserved(name):
             hint = close_names(name)
             raise ValueError(f"unknown type {name!r}" + (f"; did you mean {hint[0]!r}?" if hint

@@ -7,6 +7,7 @@ PNG files are written with the right colour order, so a stored PNG opens correct
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import cv2
@@ -57,11 +58,44 @@ def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
     return buffer.tobytes()
 
 
-def decode_file(data: bytes, encoding: str) -> np.ndarray:
-    """The pixels of PNG or JPEG bytes, in the channel order `encoding` names (files hold BGR)."""
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) of PNG or JPEG bytes read from the header (PNG's IHDR chunk, JPEG's
+    start-of-frame segment) without decoding a pixel; None for anything else."""
+    if data.startswith(PNG_SIGNATURE) and data[12:16] == b"IHDR" and len(data) >= 24:
+        return struct.unpack(">II", data[16:24])
+    if not data.startswith(b"\xff\xd8"):
+        return None
+    at = 2
+    while at + 9 <= len(data) and data[at] == 0xFF:
+        marker, length = data[at + 1], struct.unpack(">H", data[at + 2:at + 4])[0]
+        if marker in JPEG_FRAME_MARKERS:
+            height, width = struct.unpack(">HH", data[at + 5:at + 9])
+            return width, height
+        at += 2 + length
+    return None
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_FRAME_MARKERS = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE,
+                      0xCF}  # SOF0-15 but DHT, JPG and DAC
+
+
+def decode_file(data: bytes, encoding: str, max_pixels: int | None = None) -> np.ndarray:
+    """The pixels of PNG or JPEG bytes, in the channel order `encoding` names (files hold BGR).
+    With `max_pixels`, the size in the header is checked first: decoding a small file can
+    take gigabytes."""
+    if not data:
+        raise ConversionError("is empty (0 bytes)")
+    if max_pixels is not None:
+        size = image_size(data)
+        if size is None:
+            raise ConversionError("does not decode (not a PNG or JPEG image)")
+        if size[0] * size[1] > max_pixels:
+            raise ConversionError(f"is {size[0]} x {size[1]} pixels, over the limit of "
+                                  f"{max_pixels}")
     array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if array is None:
-        raise ConversionError("the image data does not decode")
+        raise ConversionError("does not decode")
     if _swaps_channels(encoding, array):
         array = array[..., [2, 1, 0, 3][: array.shape[2]]].copy()
     return array

@@ -60,10 +60,12 @@ import numpy as np
 from bson.errors import InvalidBSON
 from pydantic import ValidationError
 from pymongo import MongoClient
+from pymongo.errors import PyMongoError
 
 from percept_memory.converters import TYPE_KEY, Unknown, decode
 from percept_memory.ingest.errors import SourceError
 from percept_memory.ingest.service import in_map
+from percept_memory.memory.errors import reason, redacted
 from percept_memory.memory.types import (
     CameraInfo,
     Classification,
@@ -134,13 +136,18 @@ def read_dump(folder: Path, robot: str = "pr2", map_name: str | None = None
     return in_map(read_collections(collections, robot), map_name or f"robosherlock/{folder.name}")
 
 
-def read_database(uri: str, db: str, robot: str = "pr2", map_name: str | None = None
-                  ) -> Iterator[Scene]:
+def read_database(uri: str, db: str, robot: str = "pr2", map_name: str | None = None,
+                  timeout_ms: int = 5000) -> Iterator[Scene]:
     """The frames of a live RoboSherlock database, oldest first, in one map (`map_name`,
-    default `robosherlock/<db>`)."""
-    with MongoClient(uri) as client:
+    default `robosherlock/<db>`). A server that does not answer within `timeout_ms` is a
+    SourceError."""
+    with MongoClient(uri, serverSelectionTimeoutMS=timeout_ms) as client:
         database = client[db]
-        names = [n for n in database.list_collection_names() if not n.startswith("system.")]
+        try:
+            names = [n for n in database.list_collection_names() if not n.startswith("system.")]
+        except PyMongoError as error:
+            raise SourceError(f"cannot read the RoboSherlock database at {redacted(uri)}: "
+                              f"{reason(error)}") from None
         yield from in_map(read_collections({name: database[name].find() for name in names},
                                            robot), map_name or f"robosherlock/{db}")
 

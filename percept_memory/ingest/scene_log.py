@@ -16,6 +16,7 @@ from typing import Any
 
 from percept_memory.memory.types import Scene
 
+from .json_input import loads
 from .service import IngestError
 
 IMAGES = "images"
@@ -34,21 +35,32 @@ def read_scene_log(folder: Path) -> Iterator[tuple[str, Any]]:
     if not files:
         raise _problem(str(folder), "holds no .json or .jsonl scene files")
     for path in files:
+        text = _text(path)
         if path.suffix == ".jsonl":
-            with path.open(encoding="utf-8") as lines:
-                for number, line in enumerate(lines, start=1):
-                    if line.strip():
-                        yield f"{path.name}:{number}", _parse(line, f"{path.name}:{number}")
+            for number, line in enumerate(text.splitlines(), start=1):
+                if line.strip():
+                    yield f"{path.name}:{number}", _parse(line, f"{path.name}:{number}")
         else:
-            data = _parse(path.read_text(encoding="utf-8"), path.name)
+            data = _parse(text, path.name)
             for index, scene in enumerate(data if isinstance(data, list) else [data]):
                 yield (f"{path.name}[{index}]" if isinstance(data, list) else path.name), scene
 
 
+def _text(path: Path) -> str:
+    """The UTF-8 text of a scene file; only regular files are read (a FIFO would block)."""
+    if not path.is_file():
+        raise _problem(path.name, "is not a regular file")
+    try:
+        return path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise _problem(path.name, f"is not UTF-8 text (byte {error.start}); scene files are "
+                                  "JSON in UTF-8") from None
+
+
 def _parse(text: str, where: str) -> Any:
     try:
-        return json.loads(text)
-    except json.JSONDecodeError as error:
+        return loads(text)
+    except ValueError as error:
         raise _problem(where, f"is not valid JSON: {error}") from None
 
 

@@ -22,6 +22,7 @@ from pydantic import ValidationError
 
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
+from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
 from percept_memory.memory.pipeline import Pipeline
@@ -37,7 +38,7 @@ def problems_of(error: ValidationError, item: Any) -> list[dict]:
     """pydantic's errors as IngestError problems (no input values echoed back)."""
     return [
         {"item": item, "path": ".".join(str(p) for p in e["loc"] if p not in UNION_TAGS),
-         "message": e["msg"], "type": e["type"]}
+         "message": e["msg"].removeprefix("Value error, "), "type": e["type"]}
         for e in error.errors(include_url=False, include_input=False)
     ]
 
@@ -51,6 +52,8 @@ def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 
         raise IngestError([{"item": item, "path": "", "message":
                             f"a scene is a JSON object, not {type(data).__name__}",
                             "type": "model_type"}])
+    if problems := input_problems(data):
+        raise IngestError([{"item": item, **problem} for problem in problems])
     try:
         return Scene.model_validate(dict(data), context=dict(context or {}))
     except ValidationError as error:
@@ -61,10 +64,13 @@ class IngestService:
     """Brings scenes into a MemoryStore."""
 
     def __init__(self, store: MemoryStore, *, pipeline: Pipeline | None = None,
-                 batch_size: int = DEFAULT_BATCH):
+                 batch_size: int = DEFAULT_BATCH, settings: Settings | None = None):
+        settings = settings or Settings()
         self.store = store
-        self.pipeline = pipeline or memory_pipeline(store)
+        self.pipeline = pipeline or memory_pipeline(store, settings)
         self.batch_size = batch_size
+        self.limits = {"max_image_pixels": settings.max_image_pixels,
+                       "max_crop_pixels": settings.max_crop_pixels}  # for validation
 
     def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
                wait: float | None = None) -> SceneIds:
@@ -98,32 +104,43 @@ class IngestService:
     ) -> Iterator[Ingested]:
         """Store a long stream of (label, scene) batch by batch (importers, the demo),
         yielding each scene with its ids as its batch lands. Labels name items in errors.
+        An invalid batch is not stored; every scene before it is, and is yielded before the
+        IngestError is raised, so the caller can say exactly what was stored.
 
         Pipelined: while a writer thread commits one batch (pymongo waits on the server
         without holding the GIL), this thread validates and encodes the next one."""
-        iterator = iter(items)
         landed: list[Ingested] = []
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmem-writer") as writer:
             pending: tuple[list[Scene], Future] | None = None
             try:
-                while batch := list(islice(iterator, self.batch_size)):
-                    scenes = self._validated([data for _, data in batch], context,
-                                             [label for label, _ in batch])
+                for scenes in self._batches(items, context):
                     prepared = self.store.prepare_scenes(scenes)
                     if pending is not None:
                         previous, pending = pending, None
                         yield from self._landed(*previous)
                     pending = (scenes, writer.submit(self.store.commit_scenes, prepared))
+            except IngestError:
+                if pending is not None:
+                    previous, pending = pending, None
+                    yield from self._landed(*previous)
+                raise
             finally:
-                if pending is not None:  # lands even if a later batch was invalid or the
-                    landed = self._landed(*pending)  # caller stopped
+                if pending is not None:  # lands even if the caller stopped
+                    landed = self._landed(*pending)
         yield from landed
+
+    def _batches(self, items: Iterable[tuple[str, Scene | Mapping]],
+                 context: Mapping | None) -> Iterator[list[Scene]]:
+        iterator = iter(items)
+        while batch := list(islice(iterator, self.batch_size)):
+            yield self._validated([data for _, data in batch], context,
+                                  [label for label, _ in batch])
 
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
         return list(map(Ingested, scenes, self._stored(write.result())))
 
-    @staticmethod
-    def _validated(items, context, labels) -> list[Scene]:
+    def _validated(self, items, context, labels) -> list[Scene]:
+        context = {**self.limits, **(context or {})}
         scenes, problems = [], []
         for index, data in enumerate(items):
             try:

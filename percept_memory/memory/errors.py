@@ -44,13 +44,18 @@ def duplicate_key(error: Exception) -> dict | None:
     return None
 
 
+class Unavailable(StoreError):
+    """No MongoDB server could be selected for a write (PMEM_MONGO_TIMEOUT_MS)."""
+
+
 class TooLarge(StoreError):
     """A document is over MongoDB's 16 MB limit."""
 
     def __init__(self, threshold: int):
         super().__init__(
-            "not stored: a document would exceed MongoDB's 16 MB limit; set "
-            f"PMEM_GRIDFS_THRESHOLD below {threshold} bytes so large values go to GridFS"
+            "not stored: a scene or a cluster with its annotations would exceed MongoDB's 16 MB "
+            "limit for one document; images and arrays over PMEM_GRIDFS_THRESHOLD "
+            f"({threshold} bytes) go to GridFS, texts do not"
         )
 
 
@@ -95,10 +100,14 @@ def redacted(uri: str) -> str:
     return f"{scheme}{sep}{credentials.split(':', 1)[0]}:***@{hosts}"
 
 
+def reason(error: Exception) -> str:
+    """What pymongo says went wrong, without its dump of timeouts and topology."""
+    return str(error).split(" (configured timeouts")[0]
+
+
 def unreachable(uri: str, error: Exception) -> StoreError:
     """The database at `uri` could not be used at all."""
-    reason = str(error).split(" (configured timeouts")[0]  # not pymongo's topology dump
     return StoreError(
-        f"cannot use MongoDB at {redacted(uri)}: {reason}. Check MONGODB_URI, or unset it to "
-        "use the embedded mongod"
+        f"cannot use MongoDB at {redacted(uri)}: {reason(error)}. Check MONGODB_URI, or unset "
+        "it to use the embedded mongod"
     )

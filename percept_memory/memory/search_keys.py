@@ -74,9 +74,14 @@ def cell(level: int, index: tuple[int, int, int]) -> str:
     return f"{level}:{index[0]}:{index[1]}:{index[2]}"
 
 
+MAX_INDEX = 2**53  # cells further out are the border cells: clamping keeps the order of
+# cells, so a volume's covering cells still hold every point in it, and 1e308 / 0.0625 (inf)
+# has a cell too
+
+
 def cell_index(level: int, point: Iterable[float]) -> tuple[int, int, int]:
     size = CELL_SIZES[level]
-    x, y, z = (math.floor(v / size) for v in point)
+    x, y, z = (math.floor(min(max(v / size, -MAX_INDEX), MAX_INDEX)) for v in point)
     return x, y, z
 
 

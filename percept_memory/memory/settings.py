@@ -9,6 +9,8 @@ import platformdirs
 from pydantic import AliasChoices, Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from .types.json_forms import IMAGE_LIMITS
+
 
 def default_data_dir() -> Path:
     """Where the embedded mongod keeps its files unless PMEM_DATA_DIR says otherwise."""
@@ -26,6 +28,11 @@ class Settings(BaseSettings):
         description="MONGODB_URI: MongoDB connection string; unset = the embedded local mongod",
     )
     db: str = Field(default="percept_memory", description="PMEM_DB: database name")
+    mongo_timeout_ms: int = Field(
+        default=5000, ge=1,
+        description="PMEM_MONGO_TIMEOUT_MS: how long to wait for an unreachable MongoDB before "
+                    "failing (HTTP 503)",
+    )
     data_dir: Path = Field(
         default_factory=default_data_dir,
         description="PMEM_DATA_DIR: data directory of the embedded mongod",
@@ -65,6 +72,15 @@ class Settings(BaseSettings):
     max_request_mb: float = Field(
         default=64, gt=0,
         description="PMEM_MAX_REQUEST_MB: largest HTTP request body accepted (413 above)",
+    )
+    max_image_pixels: int = Field(
+        default=IMAGE_LIMITS["max_image_pixels"], ge=1,
+        description="PMEM_MAX_IMAGE_PIXELS: largest image accepted, in pixels (checked in the "
+                    "PNG/JPEG header before decoding)",
+    )
+    max_crop_pixels: int = Field(
+        default=IMAGE_LIMITS["max_crop_pixels"], ge=1,
+        description="PMEM_MAX_CROP_PIXELS: largest cluster crop accepted, in pixels",
     )
     query_timeout_ms: int = Field(
         default=2000, ge=1,

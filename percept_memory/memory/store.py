@@ -13,7 +13,12 @@ from collections.abc import Callable, Sequence
 
 from bson import ObjectId
 from pymongo import MongoClient, UpdateOne
-from pymongo.errors import DocumentTooLarge, OperationFailure, PyMongoError
+from pymongo.errors import (
+    DocumentTooLarge,
+    OperationFailure,
+    PyMongoError,
+    ServerSelectionTimeoutError,
+)
 
 from percept_memory.converters import content_id
 
@@ -24,7 +29,9 @@ from .errors import (
     StoreError,
     TooLarge,
     TransactionTooLarge,
+    Unavailable,
     duplicate_key,
+    reason,
     require_replica_set,
     too_large,
     transaction_too_large,
@@ -133,8 +140,9 @@ class MemoryStore(StoreBase):
 
         settings = settings or Settings()
         uri = resolve_uri(settings)
-        store = cls(MongoClient(uri, **CLIENT_OPTIONS), settings.db,
-                    gridfs_threshold=settings.gridfs_threshold)
+        client = MongoClient(uri, serverSelectionTimeoutMS=settings.mongo_timeout_ms,
+                             **CLIENT_OPTIONS)
+        store = cls(client, settings.db, gridfs_threshold=settings.gridfs_threshold)
         try:
             store.prepare()
         except PyMongoError as error:
@@ -188,7 +196,8 @@ class MemoryStore(StoreBase):
         if not written.scenes:
             return prepared.results
         try:
-            self._transaction(lambda session: self._insert(written, session))
+            self._transaction(lambda session: self._insert(written, session),
+                              retry_unreachable=False)
         except (DocumentTooLarge, OperationFailure) as error:
             if self._refused(error, prepared) == HALVE:
                 return [result for half in halves(prepared.scenes) for result in
@@ -359,9 +368,21 @@ class MemoryStore(StoreBase):
             self.clusters.insert_many(written.clusters, session=session)
         self.outbox.insert_many(written.outbox, session=session)
 
-    def _transaction(self, work):
+    def _transaction(self, work, retry_unreachable: bool = True):
+        """Run work(session) in a transaction. pymongo retries it for two minutes while no
+        server can be selected; with `retry_unreachable=False` that is an Unavailable error
+        at once instead (an ingest's caller decides whether to send again)."""
+
+        def attempt(session):
+            try:
+                return work(session)
+            except ServerSelectionTimeoutError as error:
+                if retry_unreachable:
+                    raise
+                raise Unavailable(f"not stored: {reason(error)}") from None
+
         with self.client.start_session() as session:
-            return session.with_transaction(work)
+            return session.with_transaction(attempt)
 
     def _catalogue(self, written: docs.Documents) -> None:
         """After a commit: record the stored types in `types` and the words new to this

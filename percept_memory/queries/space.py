@@ -8,6 +8,8 @@ what-is-at a volume and changes in a volume mean exactly what a cluster search m
 
 from __future__ import annotations
 
+import sys
+
 from percept_memory.memory.search_keys import (
     CELL_SIZES,
     EVERYWHERE,
@@ -18,6 +20,7 @@ from percept_memory.memory.search_keys import (
 
 from .model import Box, Sphere
 
+FLOAT_MAX = sys.float_info.max
 MAX_CELLS = 125  # cells one volume is looked up by (5 x 5 x 5 at the finest level that fits):
 # under MongoDB's 200 index points merged in sort order (internalQueryMaxScansToExplode), so
 # a page newest first merges the cells' index ranges instead of sorting every candidate
@@ -33,10 +36,11 @@ def corners(volume: Box | Sphere) -> tuple[tuple, tuple]:
         return volume.low, volume.high
     # a sphere's bounding box, a hair wider than exact arithmetic would make it, so that no
     # point the distance test keeps is lost to rounding (it only narrows candidates)
+    # (clamped to the largest float: a radius of 1e308 reaches past it, no position does)
     c, r = volume.center, volume.radius
     margin = [r + 1e-9 * (abs(v) + r) for v in c]
-    return (tuple(v - m for v, m in zip(c, margin, strict=True)),
-            tuple(v + m for v, m in zip(c, margin, strict=True)))
+    return (tuple(max(v - m, -FLOAT_MAX) for v, m in zip(c, margin, strict=True)),
+            tuple(min(v + m, FLOAT_MAX) for v, m in zip(c, margin, strict=True)))
 
 
 def inside_box(box: Box, position: str) -> dict:

@@ -7,7 +7,6 @@ and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 
 from __future__ import annotations
 
-import json
 import secrets
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
@@ -16,17 +15,27 @@ from fastapi import FastAPI, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
+from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
 
 from percept_memory.ingest.jobs import State, job_report
+from percept_memory.ingest.json_input import loads
 from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
+from percept_memory.memory.errors import StoreError
 from percept_memory.memory.pipeline import status as pipeline_status
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from .errors import ApiError, error_response
+from .errors import (
+    READ_ERRORS,
+    UNAVAILABLE,
+    WRITE_ERRORS,
+    ApiError,
+    error_response,
+    store_status,
+)
 from .export_api import export_router
 from .guard import Guard
 from .html import API_DOCS_CSP, page
@@ -57,7 +66,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.add_middleware(Guard, settings=settings)  # who may talk to the app: guard.py
-    service = IngestService(store, pipeline=pipeline)
+    service = IngestService(store, pipeline=pipeline, settings=settings)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()
     mount_pages(app, store, settings)  # the HTML pages (pages.py)
@@ -65,6 +74,14 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:
         return error_response(error.status, error.message, error.problems)
+
+    @app.exception_handler(StoreError)
+    async def _store_error(request: Request, error: StoreError) -> JSONResponse:
+        return error_response(store_status(error), str(error))
+
+    @app.exception_handler(AutoReconnect)  # no server to select, or a connection lost
+    async def _unavailable(request: Request, error: AutoReconnect) -> JSONResponse:
+        return error_response(503, UNAVAILABLE)
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
@@ -80,11 +97,13 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     def api_docs(request: Request) -> HTMLResponse:
         return page(request, "docs.html", {"openapi_url": app.openapi_url}, policy=API_DOCS_CSP)
 
-    @app.get("/api/schema/scene", summary="JSON Schema of a scene (interchange format v1)")
+    @app.get("/api/schema/scene", summary="JSON Schema of a scene (interchange format v1)",
+             responses=READ_ERRORS)
     def scene_json_schema() -> dict[str, Any]:
         return scene_schema
 
-    @app.post("/api/scenes", status_code=201, summary="Store one scene or a batch of scenes")
+    @app.post("/api/scenes", status_code=201, summary="Store one scene or a batch of scenes",
+              responses=WRITE_ERRORS, openapi_extra=scenes_body())
     async def post_scenes(
         request: Request,
         wait: Annotated[Literal["belief"] | None, Query(
@@ -120,14 +139,16 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(query_router(QueryEngine(store, settings)))
     app.include_router(export_router(store, settings))
 
-    @app.get("/api/pipeline", summary="How far the belief of each map is")
+    @app.get("/api/pipeline", summary="How far the belief of each map is",
+             responses=READ_ERRORS)
     def pipeline_report() -> dict[str, Any]:
         """Per map: `consolidated_until` (the time in ns of the newest scene consolidated into
         its belief), the scenes `pending` and `held` (a stage kept failing; the `held` list
         gives their errors), whether it is `rebuilding` and which process consolidates it."""
         return pipeline_status(store)
 
-    @app.get("/api/jobs", summary="The enrichment queue: jobs per state, the latest jobs")
+    @app.get("/api/jobs", summary="The enrichment queue: jobs per state, the latest jobs",
+             responses=READ_ERRORS)
     def list_jobs(state: State | None = None,
                   limit: Annotated[int, Query(ge=0, le=1000)] = 50) -> dict[str, Any]:
         """Counts per state (queued, running, done, failed) and the `limit` most recently
@@ -135,7 +156,37 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         job, the outcome of a done one (backend, cached or fresh, hash distance, latency)."""
         return job_report(store, state, limit)
 
+    with_scene_schemas(app)
     return app
+
+
+SCENE_REF = "#/components/schemas/{model}"
+
+
+def scenes_body() -> dict:
+    """The OpenAPI request body of POST /api/scenes: a scene or a non-empty list of them. (The
+    route reads its body itself, to refuse a large one early; see with_scene_schemas.)"""
+    scene = {"$ref": SCENE_REF.format(model="Scene")}
+    return {"requestBody": {"required": True, "content": {"application/json": {"schema": {
+        "oneOf": [scene, {"type": "array", "items": scene, "minItems": 1}]}}}}}
+
+
+def with_scene_schemas(app: FastAPI) -> None:
+    """Put the scene's JSON Schema and its parts among the OpenAPI description's schemas, where
+    the body of POST /api/scenes refers to them."""
+    scene = Scene.model_json_schema(ref_template=SCENE_REF)
+    parts = {**scene.pop("$defs", {}), "Scene": scene}
+    describe = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        description = describe()
+        schemas = description.setdefault("components", {}).setdefault("schemas", {})
+        clashes = {name for name in parts if schemas.get(name, parts[name]) != parts[name]}
+        assert not clashes, f"two OpenAPI schemas are named {clashes}"
+        schemas.update(parts)
+        return description
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _authorise(request: Request, token: str | None) -> None:
@@ -164,6 +215,6 @@ async def _read_body(request: Request, max_bytes: int) -> bytes:
 
 def _parse_json(body: bytes) -> Any:
     try:
-        return json.loads(body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        return loads(body)
+    except ValueError as error:
         raise ApiError(422, f"the body is not valid JSON: {error}") from None

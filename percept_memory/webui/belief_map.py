@@ -51,13 +51,20 @@ class Projection:
                max_height: int = MAX_HEIGHT) -> Projection:
         x0, x1 = min(xs, default=0) - PAD_M, max(xs, default=1) + PAD_M
         y0, y1 = min(ys, default=0) - PAD_M, max(ys, default=1) + PAD_M
-        scale = min((width - 2 * MARGIN) / (x1 - x0), (max_height - 2 * MARGIN) / (y1 - y0))
-        return cls(x0, y1, scale, round((x1 - x0) * scale + 2 * MARGIN),
-                   round((y1 - y0) * scale + 2 * MARGIN))
+        scale = min((width - 2 * MARGIN) / _half(x1, x0),
+                    (max_height - 2 * MARGIN) / _half(y1, y0)) / 2
+        return cls(x0, y1, scale, round(_half(x1, x0) * scale * 2 + 2 * MARGIN),
+                   round(_half(y1, y0) * scale * 2 + 2 * MARGIN))
 
     def point(self, x: float, y: float) -> tuple[float, float]:
-        return (round(MARGIN + (x - self.x0) * self.scale, 1),
-                round(MARGIN + (self.y1 - y) * self.scale, 1))
+        return (round(MARGIN + _half(x, self.x0) * self.scale * 2, 1),
+                round(MARGIN + _half(self.y1, y) * self.scale * 2, 1))
+
+
+def _half(a: float, b: float) -> float:
+    """(a - b) / 2, exactly, but finite for any finite a and b: positions may lie as far apart
+    as floats go, and 1e308 - -1e308 overflows."""
+    return a / 2 - b / 2
 
 
 @dataclass

@@ -34,7 +34,7 @@ def routes(store: MemoryStore) -> APIRouter:
 def enrichment_report(store: MemoryStore) -> dict:
     failed = job_report(store, "failed", FAILED_SHOWN)
     done = job_report(store, "done", LOOKUPS_SHOWN)
-    (cache,) = store.db[JOBS].aggregate([
+    (cache,) = list(store.db[JOBS].aggregate([
         {"$match": {"state": "done"}},
         {"$sort": {"updated": -1}},
         {"$limit": HIT_WINDOW},
@@ -44,6 +44,6 @@ def enrichment_report(store: MemoryStore) -> dict:
                                                     "$outcome.latency_ms"]}},
                     "cached_ms": {"$avg": {"$cond": ["$outcome.cached", "$outcome.latency_ms",
                                                      None]}}}},
-    ]) or [{"lookups": 0, "hits": 0, "fresh_ms": None, "cached_ms": None}]
+    ])) or [{"lookups": 0, "hits": 0, "fresh_ms": None, "cached_ms": None}]
     return {"counts": failed["counts"], "failed": failed["jobs"], "lookups": done["jobs"],
             "cache": {**cache, "entries": store.db[LOOKUP_CACHE].estimated_document_count()}}

@@ -22,6 +22,7 @@ from percept_memory.queries.export.run import Export, NothingExported
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params
 
+from .errors import READ_ERRORS, WRITE_ERRORS
 from .queries import query_parameters, small_body
 
 DESCRIPTION = (ExportQuery.__doc__ or "") + (
@@ -47,7 +48,8 @@ def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
                      "X-Clusters-Selected": str(export.total)})
 
     @router.get("/export", summary="Export training data (query string)",
-                description=DESCRIPTION, response_class=StreamingResponse, responses=ZIP,
+                description=DESCRIPTION, response_class=StreamingResponse,
+                responses={**ZIP, **READ_ERRORS},
                 openapi_extra={"parameters": query_parameters(ExportQuery)})
     async def export_by_query_string(request: Request) -> StreamingResponse:
         try:
@@ -59,7 +61,8 @@ def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
         return await run_in_threadpool(started, query)
 
     @router.post("/export", summary="Export training data (JSON body)",
-                 description=DESCRIPTION, response_class=StreamingResponse, responses=ZIP)
+                 description=DESCRIPTION, response_class=StreamingResponse,
+                 responses={**ZIP, **WRITE_ERRORS})
     async def export_by_json_body(query: Annotated[ExportQuery, Body()],
                                   _: Annotated[None, Depends(small_body)]) -> StreamingResponse:
         return await run_in_threadpool(started, query)

@@ -20,6 +20,8 @@ from percept_memory.queries.engine import QUERIES, QueryEngine
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params, is_list
 
+from .errors import READ_ERRORS, WRITE_ERRORS
+
 MAX_QUERY_BYTES = 64 * 1024
 PATHS = {"annotation_stats": "stats/annotations", "cooccurrence": "stats/cooccurrence",
          "timings": "stats/timings"}
@@ -50,11 +52,12 @@ def _add_routes(router: APIRouter, run, model: type[BaseModel], plan, path: str)
         return await run_in_threadpool(_answered, run, query)
 
     router.add_api_route(path, answer_query_string, methods=["GET"], response_model=answer,
-                         summary=summary, description=doc,
+                         summary=summary, description=doc, responses=READ_ERRORS,
                          openapi_extra={"parameters": query_parameters(model)},
                          operation_id=f"get_{path.strip('/').replace('/', '_')}")
     router.add_api_route(path, answer_json_body, methods=["POST"], response_model=answer,
                          summary=f"{summary} (JSON body)", description=doc,
+                         responses=WRITE_ERRORS,
                          operation_id=f"post_{path.strip('/').replace('/', '_')}")
 
 
@@ -75,8 +78,29 @@ def small_body(request: Request) -> None:
 
 def query_parameters(model: type[BaseModel]) -> list[dict]:
     """The query-string parameters of a model, for the OpenAPI description."""
+    properties = model.model_json_schema()["properties"]
     return [{"name": name, "in": "query", "required": info.is_required(),
              "description": (info.description or "") + (" (repeatable)" if is_list(model, name)
                                                           else ""),
-             "schema": {"type": "string"}}
+             "schema": parameter_schema(properties[name], is_list(model, name))}
             for name, info in model.model_fields.items()]
+
+
+PLAIN_TYPES = {"integer", "number", "boolean", "string"}
+PLAIN_KEYWORDS = {"type", "enum", "minimum", "maximum", "minLength", "maxLength", "pattern",
+                  "default"}
+ANNOTATIONS = {"title", "description"}  # said by the parameter itself
+
+
+def parameter_schema(field: dict, repeatable: bool) -> dict:
+    """The schema of a parameter as the query string gives it: a number, flag, choice or
+    word is typed as such; a time, box, sphere, point or predicate is text in the form its
+    description gives (e.g. x0,y0,z0,x1,y1,z1), read by the model's validators."""
+    arms = [arm for arm in field.get("anyOf", [field]) if arm.get("type") != "null"]
+    value = arms[0] if len(arms) == 1 else {}
+    if repeatable:
+        value = value.get("items", {})
+    plain = value.get("type") in PLAIN_TYPES and set(value) <= PLAIN_KEYWORDS | ANNOTATIONS
+    schema = {k: v for k, v in value.items() if k in PLAIN_KEYWORDS} if plain else {
+        "type": "string"}
+    return {"type": "array", "items": schema} if repeatable else schema

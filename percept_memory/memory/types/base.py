@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import numpy as np
 from bson import ObjectId
 from pydantic import (
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -55,11 +56,23 @@ Id = Annotated[
 ]
 """A MongoDB ObjectId; JSON carries it as 24 hex digits."""
 
+
+def _not_a_bool(value: Any) -> Any:
+    if isinstance(value, bool):  # an int to Python: `true` would be stored as 1 ns
+        raise ValueError("a timestamp is an integer, not true or false")
+    return value
+
+
+MAX_TIMESTAMP = (2**63 - 1) // 10**9 * 10**9
+"""2262-04-11T23:47:16Z, the last whole second int64 nanoseconds hold (pages round a time up
+to whole seconds)."""
+
 Timestamp = Annotated[
     int,
-    Field(ge=0, lt=2**63, description="nanoseconds since the Unix epoch, UTC"),
+    BeforeValidator(_not_a_bool),
+    Field(ge=0, le=MAX_TIMESTAMP, description="nanoseconds since the Unix epoch, UTC"),
 ]
-"""Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it."""
+"""Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it (1970 to 2262)."""
 
 
 def timestamp_from_datetime(moment: datetime) -> int:

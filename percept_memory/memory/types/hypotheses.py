@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from .base import Model, stored_type
-from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3
+from .json_forms import image_limit
+from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3, check_pixels
 
 
 class Hypothesis(Model):
@@ -28,6 +29,13 @@ class ImageROI(Hypothesis):
     mask: Image | None = None
     crop: Image | None = None
     phash: str | None = Field(default=None, pattern=PHASH_PATTERN)
+
+    @field_validator("crop")
+    @classmethod
+    def _small_crop(cls, crop: Image | None, info: ValidationInfo) -> Image | None:
+        if crop is not None:
+            check_pixels(crop.data, image_limit(info, "max_crop_pixels"))
+        return crop
 
     @staticmethod
     def similarity(a: ImageROI, b: ImageROI) -> float | None:

@@ -23,6 +23,7 @@ from percept_memory.converters.images import compress, decode_file, png_compatib
 
 MAX_ARRAY_BYTES = 512 * 2**20  # one value; a whole HTTP request is limited separately
 IMAGE_FORMATS = ("png", "jpeg")
+IMAGE_LIMITS = {"max_image_pixels": 40_000_000, "max_crop_pixels": 4_000_000}  # defaults
 
 
 def resolve_path(relative: Any, info: ValidationInfo) -> Path:
@@ -124,10 +125,18 @@ def image_from_json(data: Any, info: ValidationInfo) -> Any:
         encoded = decode_base64(data[key], key)
         fields.setdefault("format", key)
     try:
-        pixels = decode_file(encoded, fields.get("encoding", "bgr8"))
-    except ConversionError:
-        raise ValueError(f"the {key} image does not decode") from None
+        pixels = decode_file(encoded, fields.get("encoding", "bgr8"), image_limit(info))
+    except ConversionError as error:
+        what = f"image file {data['path']!r}" if key == "path" else f"{key} image"
+        raise ValueError(f"the {what} {error}") from None
     return {**fields, "data": pixels}
+
+
+def image_limit(info: ValidationInfo, kind: str = "max_image_pixels") -> int:
+    """The most pixels an image (or, kind max_crop_pixels, a crop) may have: the validation
+    context's (from the settings, PMEM_MAX_IMAGE_PIXELS and PMEM_MAX_CROP_PIXELS), else the
+    default."""
+    return (info.context or {}).get(kind, IMAGE_LIMITS[kind])
 
 
 def image_to_json(fields: dict, pixels: np.ndarray) -> dict:

@@ -19,7 +19,13 @@ from pydantic import (
 from percept_memory.converters import ImageCodec, register_codec
 
 from .base import Model, Timestamp, stored_type
-from .json_forms import array_from_json, array_to_json, image_from_json, image_to_json
+from .json_forms import (
+    array_from_json,
+    array_to_json,
+    image_from_json,
+    image_limit,
+    image_to_json,
+)
 
 NDArray = Annotated[
     np.ndarray,
@@ -132,11 +138,14 @@ class Image(Model):
 
     @field_validator("data")
     @classmethod
-    def _image_shaped(cls, data: np.ndarray) -> np.ndarray:
+    def _image_shaped(cls, data: np.ndarray, info: ValidationInfo) -> np.ndarray:
         if data.ndim not in (2, 3):
             raise ValueError(
                 f"an image is 2-D or 3-D (height, width[, channels]), got {data.ndim}-D"
             )
+        if data.size == 0:
+            raise ValueError(f"an image has pixels; this one is {data.shape}")
+        check_pixels(data, image_limit(info))
         return data
 
     @property
@@ -149,6 +158,13 @@ class Image(Model):
 
 
 register_codec(Image, ImageCodec(Image, "pm.raw.Image"))
+
+
+def check_pixels(data: np.ndarray, limit: int) -> None:
+    """Refuse an image of more than `limit` pixels (each view of it would cost its size)."""
+    height, width = data.shape[:2]
+    if height * width > limit:
+        raise ValueError(f"the image is {width} x {height} pixels, over the limit of {limit}")
 
 
 @stored_type("pm.raw.PointCloud")

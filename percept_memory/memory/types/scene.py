@@ -13,6 +13,8 @@ from .hypotheses import Hypothesis, SpatialVolume
 from .raw import CameraInfo, Image, PointCloud, Transform, Vec3
 
 A = TypeVar("A", bound=Annotation)
+MAX_CLUSTERS = 1000  # per scene: a scene is stored in one transaction
+MAX_NAME = 200  # characters of a robot, frame or map name
 
 
 @stored_type("pm.scene.Cluster")
@@ -54,12 +56,12 @@ class Scene(Identifiable):
     clusters, the relations table, scene-level annotations and the annotators' log."""
 
     timestamp: Timestamp
-    robot: str = ""
-    frame: str = "map"
+    robot: str = Field("", max_length=MAX_NAME)
+    frame: str = Field("map", max_length=MAX_NAME)
     # The unit of space: regions, objects and the belief are per map, and observations in two
     # maps are never one object. Default: the robot and its frame ("pr2/map"), given when the
     # scene is validated.
-    map: str = Field("", max_length=200, description=(
+    map: str = Field("", max_length=MAX_NAME, description=(
         "the map (site) the scene belongs to; default: robot/frame"))
     camera_pose: Transform | None = None  # the camera in `frame`
     camera: CameraInfo | None = None
@@ -68,16 +70,34 @@ class Scene(Identifiable):
     transforms: list[Transform] = []
     images: dict[str, Image] = {}
     clouds: dict[str, PointCloud] = {}
-    clusters: list[Cluster] = []
+    clusters: list[Cluster] = Field([], max_length=MAX_CLUSTERS)
     relations: list[Relation] = []
     annotations: list[polymorphic(Annotation)] = []
     log: list[LogLine] = []
+
+    @model_validator(mode="after")
+    def _ids_once(self) -> Scene:
+        """An id names one stored document: two clusters (or two annotations of one
+        cluster) given the same id cannot both be stored."""
+        _once([c.id for c in self.clusters], "clusters")
+        for index, cluster in enumerate(self.clusters):
+            _once([a.id for a in cluster.annotations if isinstance(a, Identifiable)],
+                  f"clusters.{index}.annotations")
+        return self
 
     @model_validator(mode="after")
     def _default_map(self) -> Scene:
         if not self.map:
             self.map = default_map(self.robot, self.frame)
         return self
+
+
+def _once(ids: list, where: str) -> None:
+    seen = set()
+    for given in ids:
+        if given is not None and given in seen:
+            raise ValueError(f"{where}: the id {given} is given twice")
+        seen.add(given)
 
 
 def default_map(robot: str, frame: str) -> str:

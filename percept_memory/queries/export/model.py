@@ -12,6 +12,7 @@ Format = Literal["coco", "yolo", "imagefolder", "jsonl"]
 LabelSource = Literal["classification", "detection", "ground_truth", "object", "text"]
 ImageMode = Literal["auto", "scenes", "crops"]
 IMAGE_FORMATS = ("coco", "yolo")
+MAX_EXPORT = 2**63 - 1  # clusters: as many as MongoDB can count (and islice can stop at)
 
 
 class ExportQuery(ClusterFilter):
@@ -29,7 +30,7 @@ class ExportQuery(ClusterFilter):
     feature: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="jsonl: feature vector names (VFH, Caffe, color_histogram); "
                                 "all a cluster has if none given")
-    limit: Annotated[int, Field(ge=1)] | None = Field(
+    limit: Annotated[int, Field(ge=1, le=MAX_EXPORT)] | None = Field(
         default=None, description="export at most this many clusters (the oldest)")
 
     @model_validator(mode="after")

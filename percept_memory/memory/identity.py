@@ -213,7 +213,8 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
 def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
     if a is None or b is None:
         return None
-    return gaussian(float(np.linalg.norm(np.subtract(a, b))), sigma)
+    with np.errstate(over="ignore"):  # places 1e308 apart are infinitely far: proximity 0
+        return gaussian(float(np.linalg.norm(np.subtract(a, b))), sigma)
 
 
 # --- calibration: how alike is "the same", learnt from the observations ---------------------

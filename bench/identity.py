@@ -364,7 +364,7 @@ class Run:
         known = [Known(k, b.last, inside(region, b.last.position))
                  for k, b in self.belief.items()]
         # as in the consolidation, objects seen to disappear remain candidates, out of view
-        candidates = known + [Known(k, b.last, False, gone=True) for k, b in self.gone.items()]
+        candidates = known + [Known(k, b.last, False) for k, b in self.gone.items()]
         start = time.perf_counter()
         decisions = self.decider.decide(new, candidates, region)
         elapsed = time.perf_counter() - start

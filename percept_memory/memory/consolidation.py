@@ -5,8 +5,7 @@ scene, live and in a rebuild alike.
 
 `objects` holds one document per physical object believed to exist, in one map:
     {_id, map, name, names, label_weights, state: present | hidden | disappeared, first_seen,
-     last_seen (ns), last_scene, last_cluster, position (estimated from its observations since
-     it last moved, `settled` of them), x, y, region, robot, observations}
+     last_seen (ns), last_scene, last_cluster, position, x, y, region, robot, observations}
 `events` holds one document per object per scene that concerned it:
     {_id, map, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move,
      newview, appear, hidden, disappear), probability, alternatives [{object_id, explanation,
@@ -50,10 +49,7 @@ _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
 # what deciding reads of a candidate object (its names only once it is seen again)
-CANDIDATE_FIELDS = {"state": 1, "position": 1, "settled": 1, "region": 1, "last_cluster": 1,
-                    "last_seen": 1}
-SETTLED = (Explanation.STAY, Explanation.NEWVIEW)  # the object did not move
-SETTLED_KEPT = 20
+CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1}
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
@@ -104,9 +100,7 @@ class Consolidation:
         many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, session)
         last = self._observations([o["last_cluster"] for o, _ in believed], session)
-        known = [Known(o["_id"], _as_believed(last[o["last_cluster"]], o), seen,
-                       gone=o.get("state") == "disappeared",
-                       unseen_s=(scene.timestamp - o["last_seen"]) / 1e9)
+        known = [Known(o["_id"], last[o["last_cluster"]], seen)
                  for o, seen in believed if o["last_cluster"] in last]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params, calibration)
@@ -227,38 +221,20 @@ def _event(decision: Decision, object_id, scene: Scene, cluster: Cluster | None,
     }
 
 
-def _as_believed(last: Observation, believed: dict) -> Observation:
-    """An object's last observation, at the place the memory estimates for it."""
-    position = believed.get("position")
-    return Observation(last.key, tuple(position) if position else last.position, last.evidence)
-
-
-def estimated(decision: Decision, cluster: Cluster, previous: dict) -> tuple[list | None, int]:
-    """The object's place estimated from all its observations since it last moved (their
-    running mean over at most SETTLED_KEPT, so a slow drift is followed), and how many."""
-    seen = list(cluster.position) if cluster.position else None
-    before, count = previous.get("position"), previous.get("settled", 0)
-    if seen is None or before is None or decision.explanation not in SETTLED:
-        return seen, 1 if seen is not None else 0
-    count = min(count + 1, SETTLED_KEPT)
-    return [b + (x - b) / count for b, x in zip(before, seen, strict=True)], count
-
-
 def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster | None,
                    previous: dict) -> UpdateOne:
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
     weights = stored_weights(previous)
     weights.update(naming_labels(cluster.annotations))
-    position, settled = estimated(decision, cluster, previous)
+    position = list(cluster.position) if cluster.position else None
     return UpdateOne(
         {"_id": object_id},
         {
             "$set": {
                 "map": scene.map, "state": "present", "last_seen": scene.timestamp,
                 "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
-                "position": position, "settled": settled,
-                "x": position[0] if position else None,
+                "position": position, "x": position[0] if position else None,
                 "y": position[1] if position else None, "region": cluster.region,
                 **naming_fields(weights),
             },

@@ -58,31 +58,11 @@ class Parameters:
     # near counts as "the same place" is learnt (Calibration).
     proximity_sigma: float = 0.05
     # Odds of the explanations, tuned on the thesis' synthetic protocol at its four noise
-    # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0), and
-    # `prior_move` and `prior_moved_here` on one continuous world (seeds 101, 102, not reported)
-    # once the cues were calibrated in their lower tail (Spread.alike).
-    prior_move: float = 0.3  # odds that an object in view moved between two looks at it
+    # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0).
+    prior_move: float = 0.0338  # odds that an object moved between two looks at it
     prior_newview: float = 0.3032  # odds that the same place shows another side of it
     prior_appear: float = 4.1028  # odds of "a new object" against a known one
     prior_gone: float = 2.575  # odds of "an object in view is not there any more"
-    # Odds that a new observation is one of the objects believed out of view, moved here:
-    # shared among them, so that remembering more objects does not make a spurious move
-    # likelier (a move needs evidence against every alternative, a new object included).
-    prior_moved_here: float = 3.4
-    # An object believed hidden at its place (not seen gone from it) takes this share of those
-    # odds when just seen, growing towards 1 (that of an object seen to be gone) as it stays
-    # unseen: belief in a place fades with time and with views of the place (dwell_s: how long
-    # objects stay put on average, an hour in a kitchen).
-    hidden_share: float = 0.1
-    dwell_s: float = 3600.0
-    # Two different objects may look alike: their spread is fitted to its bulk, and a Gamma of
-    # large shape there would call a merely close look impossible for two objects (likelihood
-    # ratios of thousands where the truth is a few, while among dozens of remembered objects
-    # one often looks close). Its lower tail is kept at least as heavy as this shape's (1.5 would
-    # be the squared distance of two random points in 3D: right where colour is all, as in the
-    # thesis' protocol; where many annotators agree, as in the kitchen week, different objects
-    # look alike far less often: 3.5 weighs the two, README: Identity and belief).
-    different_max_shape: float = 3.5
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
@@ -112,23 +92,11 @@ class Observation:
 
 @dataclass
 class Known:
-    """An object believed to exist, as last observed, whether its place is in view now, and
-    whether it was seen to be gone from there (its place seen empty since)."""
+    """An object believed to exist, as last observed, and whether its place is in view now."""
 
     key: Any  # the object id
     last: Observation
     in_view: bool
-    gone: bool = False
-    unseen_s: float = 0.0  # how long since it was last seen
-
-    def mobility(self, params: Parameters) -> float:
-        """Its share of the odds that an object out of view was moved here: an object seen
-        to be gone has left its place; belief that a hidden one is still at its place fades
-        with the time it has not been seen (objects stay put for `dwell_s` on average)."""
-        if self.gone:
-            return 1.0
-        stayed = math.exp(-self.unseen_s / params.dwell_s)
-        return 1.0 - (1.0 - params.hidden_share) * stayed
 
 
 @dataclass
@@ -221,7 +189,6 @@ def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
 
 U_MIN = 1e-4  # -log similarity below this is "identical" (noise-free data)
 LOG_ODDS_LIMIT = 12.0  # no single cue is surer than e^12 : 1
-MIN_SHAPE, MAX_SHAPE = 0.3, 50.0
 
 
 def surprise(similarity):
@@ -256,15 +223,15 @@ class Spread:
         self.mean += weight * delta / self.weight
         self.variance += weight * (delta * (u - self.mean) - self.variance) / self.weight
 
-    def gamma(self, max_shape: float = MAX_SHAPE) -> tuple[float, float]:
-        """Shape and scale, by the method of moments (the shape at most `max_shape`)."""
+    def gamma(self) -> tuple[float, float]:
+        """Shape and scale, by the method of moments."""
         variance = max(self.variance, (self.mean * 0.05) ** 2, 1e-12)
-        shape = min(max(self.mean * self.mean / variance, MIN_SHAPE), max_shape)
+        shape = min(max(self.mean * self.mean / variance, 0.3), 50.0)
         return shape, self.mean / shape
 
-    def log_density(self, u, max_shape: float = MAX_SHAPE):
+    def log_density(self, u):
         """Of a value or an array of them."""
-        shape, scale = self.gamma(max_shape)
+        shape, scale = self.gamma()
         return ((shape - 1) * np.log(u) - u / scale - shape * math.log(scale)
                 - math.lgamma(shape))
 
@@ -279,23 +246,21 @@ class Cue:
     same: Spread
     different: Spread
 
-    def odds(self, similarity, different_max_shape: float = MAX_SHAPE):
+    def odds(self, similarity):
         """The likelihood ratio of a similarity (or of an array of them, NaN or None where
         there is nothing to compare: no evidence either way, odds 1)."""
         given = np.asarray(similarity, dtype=float)
-        u = np.maximum(surprise(given), self._peak(different_max_shape))
-        log_odds = (self.same.log_density(u)
-                    - self.different.log_density(u, different_max_shape))
+        u = np.maximum(surprise(given), self._peak())
+        log_odds = self.same.log_density(u) - self.different.log_density(u)
         odds = np.where(np.isnan(given), 1.0,
                         np.exp(np.clip(log_odds, -LOG_ODDS_LIMIT, LOG_ODDS_LIMIT)))
         return float(odds) if odds.ndim == 0 else odds
 
-    def _peak(self, different_max_shape: float) -> float:
+    def _peak(self) -> float:
         """Where the ratio of the two Gammas peaks: nearer than that is no less "the same"
         (the ratio of two Gammas falls again towards 0 when the same-object one has the larger
         shape: an artefact, not evidence)."""
-        (a_s, t_s), (a_d, t_d) = (self.same.gamma(),
-                                  self.different.gamma(different_max_shape))
+        (a_s, t_s), (a_d, t_d) = self.same.gamma(), self.different.gamma()
         rate = 1 / t_s - 1 / t_d
         return max((a_s - a_d) / rate, U_MIN) if rate > 0 and a_s > a_d else U_MIN
 
@@ -328,13 +293,11 @@ class Calibration:
                       for name in ("look", "place")})
 
 
-def explanations(look: float, place: float, in_view: bool, params: Parameters,
-                 share: float = 1.0) -> dict:
+def explanations(look: float, place: float, in_view: bool, params: Parameters) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
-    being another object, from the odds of "looks the same" and "is at the same place".
-    `share`: the object's share of the odds of a move here, when out of view."""
+    being another object, from the odds of "looks the same" and "is at the same place"."""
     if not in_view:  # its old place is not seen now: it can only have been moved here
-        return {Explanation.MOVE: look * params.prior_moved_here * share}
+        return {Explanation.MOVE: look * params.prior_move}
     return {
         Explanation.STAY: look * place,
         Explanation.MOVE: look * params.prior_move,
@@ -356,19 +319,16 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     places = np.array([[proximity(observation.position, candidate.last.position,
                                   params.proximity_sigma) for candidate in known]
                        for observation in new], dtype=float)
-    cap = params.different_max_shape
-    look_odds = calibration.look.odds(looked.reshape(len(new), len(known)), cap)
-    place_odds = calibration.place.odds(places.reshape(len(new), len(known)), cap)
+    look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
+    place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
-    mobile = sum(k.mobility(params) for k in known if not k.in_view) or 1.0
     for i in range(len(new)):
         row = []
         for j, candidate in enumerate(known):
             ways = explanations(float(look_odds[i, j]), float(place_odds[i, j]),
-                                candidate.in_view, params,
-                                candidate.mobility(params) / mobile)
+                                candidate.in_view, params)
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
@@ -414,12 +374,10 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
             if assigned.get(i) == j:
                 if decision.explanation is Explanation.STAY:
                     if look is not None:
-                        odds = (calibration.look.odds(look, params.different_max_shape)
-                                / params.prior_newview)
+                        odds = calibration.look.odds(look) / params.prior_newview
                         calibration.look.same.learn(surprise(look), memory, odds / (1 + odds))
                     if place is not None:
-                        odds = (calibration.place.odds(place, params.different_max_shape)
-                                / params.prior_move)
+                        odds = calibration.place.odds(place) / params.prior_move
                         calibration.place.same.learn(surprise(place), memory, odds / (1 + odds))
                 continue
             if decision.probability < params.confident:

@@ -101,7 +101,7 @@ from scipy.special import ndtr
 from scratch import print_json, scratch_store
 
 from percept_memory.converters import Unknown
-from percept_memory.ingest import kitchen_week
+from percept_memory.demo import kitchen_week
 from percept_memory.ingest.robosherlock import read_dump
 from percept_memory.memory.identity import Decision, Explanation, Observation
 from percept_memory.memory.types import (

@@ -39,7 +39,8 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import print_json, scratch_store
 
-from percept_memory.ingest import kitchen_week, rgbd, synthetic
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest import rgbd, synthetic
 from percept_memory.ingest.lookup_cache import HashIndex
 from percept_memory.ingest.phash import crop_phash, hamming
 from percept_memory.ingest.service import IngestService

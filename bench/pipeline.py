@@ -32,7 +32,7 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import print_json, scratch_store
 
-from percept_memory.ingest import kitchen_week
+from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
 
 

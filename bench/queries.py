@@ -29,7 +29,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from scratch import print_json, scratch_store
 
-from percept_memory.ingest import kitchen_week as kw
+from percept_memory.demo import kitchen_week as kw
 from percept_memory.memory import documents, search_keys
 from percept_memory.memory.schema import CLUSTERS, EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore, vocabulary_upserts

@@ -404,7 +404,8 @@ def wait_for_lookups(store, workers: list) -> dict[str, int]:
 
 def demo_sources(days: int):
     """(name, scenes) of everything the demo loads: real data first, then the kitchen week."""
-    from percept_memory.ingest import kitchen_week, rgbd, robosherlock
+    from percept_memory.demo import kitchen_week
+    from percept_memory.ingest import rgbd, robosherlock
 
     data = shared_data_dir()
     for folder in sorted((data / "samples").iterdir()):

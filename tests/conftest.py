@@ -84,7 +84,7 @@ def ingest_consolidated(store: MemoryStore, scenes) -> None:
 def kitchen(store):
     """The generated kitchen week ingested with consolidation into the module's store, and the
     ground truth of every stored cluster: cluster id -> the catalogue object it shows."""
-    from percept_memory.ingest import kitchen_week
+    from percept_memory.demo import kitchen_week
 
     week = kitchen_week.generate()
     ingest_consolidated(store, week.scenes)

@@ -156,7 +156,7 @@ def test_the_cli_starts_without_the_web_app_opencv_or_the_demo_generator():
          "print(' '.join(sys.modules))"], capture_output=True, text=True, check=True)
     modules = set(loaded.stdout.split("\n")[-2].split())
     assert not modules & {"fastapi", "uvicorn", "percept_memory.webui.app",
-                          "percept_memory.ingest.kitchen_week", "percept_memory.ingest.rgbd",
+                          "percept_memory.demo.kitchen_week", "percept_memory.ingest.rgbd",
                           "percept_memory.ingest.service", "scipy"}
 
 

@@ -7,7 +7,7 @@ from collections import Counter
 import pytest
 from pymongo import MongoClient
 
-from percept_memory.ingest import kitchen_week
+from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.identity import Calibration

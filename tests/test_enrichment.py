@@ -20,7 +20,8 @@ import numpy as np
 import pytest
 from pymongo import AsyncMongoClient
 
-from percept_memory.ingest import kitchen_week, rgbd
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest import rgbd
 from percept_memory.ingest.backends import Finding
 from percept_memory.ingest.backends.catalogue import SHIPPED, ProductCatalogue
 from percept_memory.ingest.backends.simulated import (

@@ -10,7 +10,7 @@ from datetime import timedelta
 import numpy as np
 import pytest
 
-from percept_memory.ingest import kitchen_week as kw
+from percept_memory.demo import kitchen_week as kw
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.types import (
     Classification,

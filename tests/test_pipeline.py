@@ -13,7 +13,7 @@ import time
 import pytest
 from pymongo import MongoClient
 
-from percept_memory.ingest import kitchen_week
+from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.mongod import EmbeddedMongod

@@ -13,7 +13,7 @@ from pymongo import AsyncMongoClient
 from rapidfuzz.distance import Levenshtein
 
 from percept_memory.converters import Unknown
-from percept_memory.ingest import kitchen_week as kw
+from percept_memory.demo import kitchen_week as kw
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words

@@ -26,7 +26,8 @@ from fastapi.testclient import TestClient
 from markupsafe import escape
 from playwright.sync_api import Page, expect, sync_playwright
 
-from percept_memory.ingest import kitchen_week, synthetic
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest import synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import (

@@ -8,23 +8,35 @@ PNG files are written with the right colour order, so a stored PNG opens correct
 from __future__ import annotations
 
 import struct
+from functools import cache
 from typing import Any
 
-import cv2
 import numpy as np
 
 from .arrays import decode_array_fields, encode_array_fields
 from .blobs import ConversionError, DecodeContext, EncodeContext
 
-# Chosen by measurement on 64 px crops of the real kitchen frame: Huffman coding after the SUB
-# filter takes 141 us and 7.3 kB per crop; the default adaptive filter 269 us and 6.9 kB. PNG is
-# lossless whatever the settings.
-PNG_PARAMS = [
-    cv2.IMWRITE_PNG_COMPRESSION, 1,
-    cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
-    cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
-]
 JPEG_QUALITY = 95
+
+
+@cache
+def _opencv():
+    """OpenCV, loaded by the first image coded (commands that code none, such as `pmem query`,
+    start without it)."""
+    import cv2
+
+    return cv2
+
+
+@cache
+def _png_params() -> list[int]:
+    """Chosen by measurement on 64 px crops of the real kitchen frame: Huffman coding after
+    the SUB filter takes 141 us and 7.3 kB per crop; the default adaptive filter 269 us and
+    6.9 kB. PNG is lossless whatever the settings."""
+    cv2 = _opencv()
+    return [cv2.IMWRITE_PNG_COMPRESSION, 1,
+            cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY,
+            cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
 
 
 def png_compatible(array: np.ndarray) -> bool:
@@ -46,10 +58,11 @@ def compress(array: np.ndarray, encoding: str, fmt: str) -> bytes:
     if _swaps_channels(encoding, array):
         array = array[..., [2, 1, 0, 3][: array.shape[2]]]
     if fmt == "png":
-        ok, buffer = cv2.imencode(".png", array, PNG_PARAMS)
+        ok, buffer = _opencv().imencode(".png", array, _png_params())
     elif fmt == "jpeg":
         if array.dtype != np.uint8 or array.ndim == 3 and array.shape[2] == 4:
             raise ConversionError("JPEG holds 8-bit grey or colour images only; use png")
+        cv2 = _opencv()
         ok, buffer = cv2.imencode(".jpg", array, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
     else:
         raise ConversionError(f"unknown image format {fmt!r}")
@@ -93,6 +106,7 @@ def decode_file(data: bytes, encoding: str, max_pixels: int | None = None) -> np
         if size[0] * size[1] > max_pixels:
             raise ConversionError(f"is {size[0]} x {size[1]} pixels, over the limit of "
                                   f"{max_pixels}")
+    cv2 = _opencv()
     array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if array is None:
         raise ConversionError("does not decode")

@@ -190,10 +190,3 @@ def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, w
     history = [e["explanation"] for e in store.db.events.find({"object_id": mug_id}).sort("time")]
     assert history == ["appear", "disappear", "move"]
     assert store.db.objects.find_one({"_id": mug_id})["state"] == "present"
-
-
-def test_the_objects_a_view_may_contain_are_found_by_index(store, consolidated):
-    """A scene's cost must not grow with the number of objects remembered elsewhere."""
-    plan = consolidated.objects_near(kitchen_week.MAP, ((0.0, 0.0), (3.5, 3.5))).explain()
-    plan = plan["queryPlanner"]["winningPlan"]
-    assert "'indexName': 'map_place'" in str(plan)

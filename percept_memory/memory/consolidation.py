@@ -25,7 +25,6 @@ from collections.abc import Sequence
 
 from bson import ObjectId
 from pymongo import UpdateOne
-from pymongo.cursor import Cursor
 
 from . import documents as docs
 from .identity import (
@@ -38,6 +37,7 @@ from .identity import (
     resolve,
 )
 from .naming import naming_fields, naming_labels, stored_weights
+from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
@@ -69,16 +69,29 @@ class Consolidation:
         self.params = params or Parameters()
         self.max_unseen_candidates = max_unseen_candidates
         self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
+        self._places: dict[str, Places] = {}  # map -> where its objects are believed
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
 
     def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
-        calibration = self.calibration(map_name, session)
+        stored = self.calibrations.find_one({"_id": map_name}, session=session)
+        calibration = self._calibration(stored)
+        places = self._places_of(map_name, stored and stored.get("version"), session)
+        places.version = ObjectId()  # the version this transaction writes, if it commits
         for scene, arrived in self._scenes(scene_ids, session):
-            self.consolidate(scene, arrived, calibration, session)
-        self.calibrations.replace_one({"_id": map_name}, {"cues": calibration.to_document()},
-                                      upsert=True, session=session)
+            self.consolidate(scene, arrived, calibration, places, session)
+        self.calibrations.replace_one(
+            {"_id": map_name}, {"cues": calibration.to_document(), "version": places.version},
+            upsert=True, session=session)
+
+    def _places_of(self, map_name: str, version: ObjectId | None, session) -> Places:
+        """The map's places in memory, read again unless they are of the stored version."""
+        places = self._places.get(map_name)
+        if places is None or version is None or places.version != version:
+            places = self._places[map_name] = Places.load(self.objects, map_name, version,
+                                                          session)
+        return places
 
     def reset(self, map_name: str) -> None:
         """Forget the map's objects, their events and what its calibration learnt."""
@@ -87,18 +100,22 @@ class Consolidation:
             self.events.delete_many({"object_id": {"$in": ids[start:start + 10_000]}})
         self.objects.delete_many({"map": map_name})
         self.calibrations.delete_one({"_id": map_name})
+        self._places.pop(map_name, None)
 
     def calibration(self, map_name: str, session=None) -> Calibration:
         """What the map's identity model has learnt so far (the prior before its first scene)."""
-        stored = self.calibrations.find_one({"_id": map_name}, session=session)
+        return self._calibration(self.calibrations.find_one({"_id": map_name},
+                                                            session=session))
+
+    def _calibration(self, stored: dict | None) -> Calibration:
         return (Calibration.from_document(stored["cues"]) if stored
                 else Calibration.prior(self.params))
 
     def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
-                    session) -> list[Decision]:
+                    places: Places, session) -> list[Decision]:
         """Decide who is who in one stored scene and record it. `arrived`: cluster id -> how
         many of its annotations came with the scene (the evidence to decide on)."""
-        believed = self._candidates(scene, session)
+        believed = self._candidates(scene, places, session)
         last = self._observations([o["last_cluster"] for o, _ in believed], session)
         known = [Known(o["_id"], last[o["last_cluster"]], seen)
                  for o, seen in believed if o["last_cluster"] in last]
@@ -121,6 +138,8 @@ class Consolidation:
                 continue  # events record changes: still hidden (or still gone) is no news
             events.append(_event(decision, object_id, scene, cluster, previous))
             objects.append(_object_update(object_id, decision, scene, cluster, previous))
+            places.put(object_id, cluster.position if cluster else previous.get("position"),
+                       live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
         if objects:
@@ -159,38 +178,21 @@ class Consolidation:
             self._decoded.popitem(last=False)
         return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
 
-    def _candidates(self, scene: Scene, session) -> list[tuple[dict, bool]]:
+    def _candidates(self, scene: Scene, places: Places, session) -> list[tuple[dict, bool]]:
         """The objects of the scene's map its clusters may be, with whether their place is in
         view: all believed present or hidden whose place is in view, and the most recently
         seen of the others, disappeared ones included (they may have been moved or brought
         back here). Older unseen objects still persist; they are just not matched now, which
         keeps a scene's cost independent of how many objects the memory holds."""
-        in_sight = []
-        view = View(scene)
-        bounds = view.bounds()
-        if bounds is not None:
-            for doc in self.objects_near(scene.map, bounds, session, CANDIDATE_FIELDS):
-                if view.sees(_vec(doc.get("position"))):
-                    in_sight.append((doc, True))
-        seen = [doc["_id"] for doc, _ in in_sight]
+        seen = places.in_view(View(scene))
+        in_sight = [(doc, True) for doc in self.objects.find(
+            {"_id": {"$in": seen}}, CANDIDATE_FIELDS, session=session)] if seen else []
         recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, CANDIDATE_FIELDS,
                                    session=session).sort(RECENT).limit(self.max_unseen_candidates)
         unseen = [(doc, False) for doc in recent]
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
-
-    def objects_near(self, map_name: str, bounds, session=None, fields=None) -> Cursor:
-        """The objects of a map believed present or hidden whose x, y lie in a box
-        ((x0, y0), (x1, y1)), by the index on their place."""
-        (x0, y0), (x1, y1) = bounds
-        query = {"map": map_name, "x": {"$gte": x0, "$lte": x1}, "y": {"$gte": y0, "$lte": y1},
-                 "state": {"$ne": "disappeared"}}
-        return self.objects.find(query, fields, session=session).hint("map_place")
-
-
-def _vec(value) -> tuple | None:
-    return tuple(value) if value is not None else None
 
 
 def _observation(cluster: Cluster, arrived: int) -> Observation:

@@ -133,26 +133,29 @@ def _by_type(evidence: Sequence) -> dict[type, list]:
     """The evidence that can be compared, by type (in order of first appearance)."""
     grouped: dict[type, list] = {}
     for item in evidence:
-        if _similarity(type(item)) is not None:
+        if _comparison(type(item)) is not None:
             grouped.setdefault(type(item), []).append(item)
     return grouped
 
 
 @cache
-def _similarity(kind: type) -> Callable | None:
-    """The similarity of a type, or None when it compares nothing (the base's default)."""
-    similarity = getattr(kind, "similarity", None)
-    return None if similarity is None or similarity is Annotation.similarity else similarity
+def _comparison(kind: type) -> Callable | None:
+    """How a type compares two lists of its items (a matrix, NaN where a pair does not
+    compare): its own `similarities` (the built-in types, vectorised), else its `similarity`
+    pair by pair; None when it compares nothing (the base's default)."""
+    batch = getattr(kind, "similarities", None)
+    if batch is not None:
+        return batch
+    pair = getattr(kind, "similarity", None)
+    if pair is None or pair is Annotation.similarity:
+        return None
+    return lambda a, b: np.array([[pair(x, y) for y in b] for x in a], dtype=float
+                                 ).reshape(len(a), len(b))
 
 
 def similarities(kind: type, a: list, b: list) -> np.ndarray:
-    """The similarity of every pair of items of one type, NaN where they do not compare: the
-    type's own `similarities` when it has one (numeric types, vectorised), else pair by pair."""
-    batch = getattr(kind, "similarities", None)
-    if batch is not None:
-        return np.asarray(batch(a, b), dtype=float)
-    pair = _similarity(kind)
-    return np.array([[pair(x, y) for y in b] for x in a], dtype=float).reshape(len(a), len(b))
+    """The similarity of every pair of items of one type, NaN where they do not compare."""
+    return np.asarray(_comparison(kind)(a, b), dtype=float)
 
 
 def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: float
@@ -178,11 +181,15 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         return np.where(count > 0, np.exp(log_sum / np.maximum(count, 1)), np.nan)
 
 
-def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
-    if a is None or b is None:
-        return None
-    with np.errstate(over="ignore"):  # places 1e308 apart are infinitely far: proximity 0
-        return gaussian(float(np.linalg.norm(np.subtract(a, b))), sigma)
+def proximities(a: Sequence[Vec | None], b: Sequence[Vec | None], sigma: float) -> np.ndarray:
+    """Eq. 6.1 of the distance of every pair of places, NaN where one is unknown."""
+    def stack(places):
+        return np.array([p if p is not None else (np.nan,) * 3 for p in places],
+                        dtype=float).reshape(len(places), 3)
+
+    with np.errstate(over="ignore", invalid="ignore"):  # places 1e308 apart: proximity 0
+        distance = np.linalg.norm(stack(a)[:, None, :] - stack(b)[None, :, :], axis=-1)
+        return np.exp(-((distance / (2 * sigma)) ** 2))
 
 
 # --- calibration: how alike is "the same", learnt from the observations ---------------------
@@ -316,9 +323,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     # the cues of every pair, then their odds at once
     looked = looks([_by_type(o.evidence) for o in new],
                    [_by_type(k.last.evidence) for k in known], params.evidence_floor)
-    places = np.array([[proximity(observation.position, candidate.last.position,
-                                  params.proximity_sigma) for candidate in known]
-                       for observation in new], dtype=float)
+    places = proximities([o.position for o in new], [k.last.position for k in known],
+                         params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
     place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     likelihood = np.zeros((len(new), len(known)))
@@ -367,25 +373,26 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
     wrong stay cannot widen what "the same" means; every other pairing of a confidently
     explained observation shows two different objects."""
     memory = params.memory
+    with np.errstate(invalid="ignore"):
+        look_u, place_u = surprise(looked).tolist(), surprise(places).tolist()
     for i, decision in enumerate(decisions):
-        for j in range(looked.shape[1]):
-            look = None if np.isnan(looked[i, j]) else float(looked[i, j])
-            place = None if np.isnan(places[i, j]) else float(places[i, j])
-            if assigned.get(i) == j:
-                if decision.explanation is Explanation.STAY:
-                    if look is not None:
-                        odds = calibration.look.odds(look) / params.prior_newview
-                        calibration.look.same.learn(surprise(look), memory, odds / (1 + odds))
-                    if place is not None:
-                        odds = calibration.place.odds(place) / params.prior_move
-                        calibration.place.same.learn(surprise(place), memory, odds / (1 + odds))
+        j = assigned.get(i)
+        if j is not None and decision.explanation is Explanation.STAY:
+            if not math.isnan(look := look_u[i][j]):
+                odds = calibration.look.odds(looked[i, j]) / params.prior_newview
+                calibration.look.same.learn(look, memory, odds / (1 + odds))
+            if not math.isnan(place := place_u[i][j]):
+                odds = calibration.place.odds(places[i, j]) / params.prior_move
+                calibration.place.same.learn(place, memory, odds / (1 + odds))
+        if decision.probability < params.confident:
+            continue
+        for k, (look, place) in enumerate(zip(look_u[i], place_u[i], strict=True)):
+            if k == j:
                 continue
-            if decision.probability < params.confident:
-                continue
-            if look is not None:
-                calibration.look.different.learn(surprise(look), memory)
-            if place is not None:
-                calibration.place.different.learn(surprise(place), memory)
+            if not math.isnan(look):
+                calibration.look.different.learn(look, memory)
+            if not math.isnan(place):
+                calibration.place.different.learn(place, memory)
 
 
 def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[int, int]:

@@ -5,7 +5,8 @@ scene, live and in a rebuild alike.
 
 `objects` holds one document per physical object believed to exist, in one map:
     {_id, map, name, names, label_weights, state: present | hidden | disappeared, first_seen,
-     last_seen (ns), last_scene, last_cluster, position, x, y, region, robot, observations}
+     last_seen (ns), last_scene, last_cluster, views (a cluster per distinct look it was seen
+     with, the last one last), position, x, y, region, robot, observations}
 `events` holds one document per object per scene that concerned it:
     {_id, map, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move,
      newview, appear, hidden, disappear), probability, alternatives [{object_id, explanation,
@@ -49,7 +50,9 @@ _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
 # what deciding reads of a candidate object (its names only once it is seen again)
-CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1}
+CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1,
+                    "first_seen": 1, "views": 1}
+VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
@@ -116,9 +119,10 @@ class Consolidation:
         """Decide who is who in one stored scene and record it. `arrived`: cluster id -> how
         many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, places, session)
-        last = self._observations([o["last_cluster"] for o, _ in believed], session)
-        known = [Known(o["_id"], last[o["last_cluster"]], seen)
-                 for o, seen in believed if o["last_cluster"] in last]
+        seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
+        known = [Known(o["_id"], seen_as[o["last_cluster"]], in_view,
+                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
+                 for o, in_view in believed if o["last_cluster"] in seen_as]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params, calibration)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
@@ -147,7 +151,49 @@ class Consolidation:
             self.events.insert_many(events, session=session)
         if links:
             self.store.clusters.bulk_write(links, session=session)
+        for keep, twin in self._remembered_twice(decisions, clusters, session):
+            self._merge(keep, twin, scene, places, session)
         return decisions
+
+    def _remembered_twice(self, decisions: list[Decision], clusters: dict, session) -> list:
+        """(object, its twin): an object seen now that looks beyond doubt like another known
+        object not seen now, the two never seen together in one scene: one object
+        remembered twice (e.g. moved while turned to a side not seen before, then turned
+        back). Identical twins never seen side by side are merged too: nobody could tell
+        them apart."""
+        pairs, taken = [], {d.object for d in decisions if d.key in clusters}
+        for decision in decisions:
+            if decision.key not in clusters or decision.object is None:
+                continue
+            for other in decision.lookalikes:
+                if other not in taken and not self._seen_together(decision.object, other,
+                                                                  session):
+                    pairs.append((decision.object, other))
+                    taken.add(other)
+        return pairs
+
+    def _seen_together(self, a, b, session) -> bool:
+        scenes = [set(self.events.distinct("scene_id", {"object_id": o, "cluster_id": {
+            "$ne": None}}, session=session)) for o in (a, b)]
+        return bool(scenes[0] & scenes[1])
+
+    def _merge(self, keep, twin, scene: Scene, places: Places, session) -> None:
+        """One object remembered as two: `twin`'s looks, observations, names and history
+        become `keep`'s, and `twin` is no more."""
+        kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
+        weights = stored_weights(kept) + stored_weights(gone)
+        views = [v for v in _views(gone) if v not in _views(kept)] + _views(kept)
+        self.objects.update_one({"_id": keep}, {
+            "$set": {"views": views[-VIEWS_KEPT:], **naming_fields(weights),
+                     "first_seen": min(kept["first_seen"], gone["first_seen"])},
+            "$inc": {"observations": gone.get("observations", 0)}}, session=session)
+        self.objects.delete_one({"_id": twin}, session=session)
+        self.events.delete_many({"object_id": twin, "scene_id": scene.id}, session=session)
+        self.events.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
+                                session=session)
+        self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
+                                        session=session)
+        places.put(twin, None, live=False)
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and
@@ -223,11 +269,18 @@ def _event(decision: Decision, object_id, scene: Scene, cluster: Cluster | None,
     }
 
 
+def _views(doc: dict) -> list:
+    """The clusters showing each distinct look of an object, the one it was last seen with
+    last (older beliefs kept only the last)."""
+    return doc.get("views") or [doc["last_cluster"]]
+
+
 def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster | None,
                    previous: dict) -> UpdateOne:
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
     weights = stored_weights(previous)
+    views = [c for c in _views(previous) if c != decision.look] if previous else []
     weights.update(naming_labels(cluster.annotations))
     position = list(cluster.position) if cluster.position else None
     return UpdateOne(
@@ -236,6 +289,7 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
             "$set": {
                 "map": scene.map, "state": "present", "last_seen": scene.timestamp,
                 "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
+                "views": [*views, cluster.id][-VIEWS_KEPT:],
                 "position": position, "x": position[0] if position else None,
                 "y": position[1] if position else None, "region": cluster.region,
                 **naming_fields(weights),

@@ -44,8 +44,9 @@ from percept_memory.memory.types import (
 )
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.results import ObjectAt
+from percept_memory.webui import belief_map, live, render, search, time_axis
 from percept_memory.webui import history as history_page
-from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
@@ -340,7 +341,7 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     drawn = page.locator(f'a.object.hidden[data-object="{hidden}"]')
     expect(drawn).to_have_count(1)
     name = store.db.objects.find_one({"_id": hidden})["name"]
-    expect(drawn.locator("text")).to_have_text(name)
+    assert drawn.locator("title").text_content().startswith(f"{name}: hidden since")
     expect(page.locator(f'table.believed tr.hidden a[href="/objects/{hidden}"]')).to_have_count(1)
     shot(page, "8-map")
 
@@ -1077,3 +1078,81 @@ def test_alternatives_are_named_by_their_objects_and_the_crop_is_large(page, url
     images_decode(page)
     crop = page.locator("img.crop")
     assert crop.bounding_box()["width"] >= 300 > crop.evaluate("i => i.naturalWidth")
+
+
+TEXT_BOXES = """svg => Array.from(svg.querySelectorAll("text"), t => {
+  const b = t.getBoundingClientRect();
+  return [t.textContent, b.left, b.top, b.right, b.bottom]; })"""
+
+
+def overlapping(boxes: list) -> list[tuple[str, str]]:
+    """The pairs of labels whose boxes on the screen overlap (by more than half a pixel)."""
+    return [(a[0], b[0]) for i, a in enumerate(boxes) for b in boxes[i + 1:]
+            if min(a[3], b[3]) - max(a[1], b[1]) > 0.5 and min(a[4], b[4]) - max(a[2], b[2]) > 0.5]
+
+
+def test_map_labels_never_overlap_and_crowds_are_counted(page, url, store, week):
+    stamps = sorted(s.timestamp for s in week.scenes)
+    for t in (stamps[len(stamps) // 3], stamps[2 * len(stamps) // 3], None):
+        page.goto(f"{url}/map?" + urlencode({"map": kitchen_week.MAP} | (
+            {"at": t // 10**9 + 1} if t else {})))
+        plan = page.locator("figure.map svg")
+        boxes = plan.evaluate(TEXT_BOXES)
+        assert overlapping(boxes) == [], t
+        objects = page.locator("a.object")
+        labelled = page.locator("a.object text")
+        counted = sum(int(text.removeprefix("+")) for text in
+                      page.locator("g.crowd text").all_text_contents())
+        assert labelled.count() + counted == objects.count() > 0, t
+        for i in range(objects.count()):
+            drawn = objects.nth(i)
+            if drawn.locator("text").count():
+                name = drawn.locator("title").text_content().partition(":")[0]
+                expect(drawn.locator("text")).to_have_text(name)
+    shot(page, "16-map")
+
+
+def test_dense_objects_are_counted_in_one_marker():
+    """Thirty objects on one spot: as many labels as find room, the rest one "+N" marker."""
+    view = belief_map.Projection.around([0.0, 1.0], [0.0, 1.0])
+    objects = [belief_map.DrawnObject(
+        ObjectAt(object_id=ObjectId(), name=f"cup {i}", state="present", since=0,
+                 explanation="stay"), 200.0, 200.0) for i in range(30)]
+    _, crowds = belief_map.lay_out(view, [], objects)
+    labels = [o.label for o in objects if o.label]
+    assert 0 < len(labels) < 30 and len(crowds) == 1
+    assert crowds[0].label.text == f"+{30 - len(labels)}"
+    boxes = [(label.text, label.box.x, label.box.y, label.box.x + label.box.width,
+              label.box.y + label.box.height) for label in [*labels, crowds[0].label]]
+    assert overlapping(boxes) == []
+
+
+OPACITY = """svg => Array.from(svg.querySelectorAll("a.object"),
+  a => [a.dataset.object, a.classList.contains("hidden"), Number(getComputedStyle(a).opacity)])"""
+
+
+def test_hidden_objects_fade_with_the_time_since_they_were_last_seen(page, url, store, week):
+    t, _, _ = past_moment(store, week)
+    page.goto(f"{url}/map?" + urlencode({"map": kitchen_week.MAP, "at": t // 10**9}))
+    drawn = page.locator("figure.map svg").evaluate(OPACITY)
+    assert all(opacity == 1 for _, hidden, opacity in drawn if not hidden)
+    hidden = {ObjectId(o): opacity for o, is_hidden, opacity in drawn if is_hidden}
+    seen = {}
+    for event in store.db.events.find({"object_id": {"$in": list(hidden)}, "time": {"$lte": t},
+                                       "explanation": {"$nin": ["hidden", "disappear"]}}):
+        seen[event["object_id"]] = max(seen.get(event["object_id"], 0), event["time"])
+    by_age = [hidden[o] for o in sorted(hidden, key=lambda o: seen[o])]  # oldest first
+    assert by_age == sorted(by_age) and by_age[0] < by_age[-1] < 1, by_age
+
+
+def test_the_map_has_a_time_axis_leading_to_its_moments(page, url):
+    page.goto(f"{url}/map")
+    axis = page.get_by_role("group", name=re.compile("^time axis from"))
+    ticks = axis.get_by_role("link")
+    assert 2 <= ticks.count() <= time_axis.MAX_TICKS
+    xs = [float(line.get_attribute("x1")) for line in axis.locator("a line").all()]
+    assert xs == sorted(xs)
+    label = ticks.nth(1).text_content().strip()
+    ticks.nth(1).click()
+    expect(page).to_have_url(re.compile(r"/map\?map=.*&at=\d+$"))
+    expect(page.locator("h1 small")).to_contain_text(label.split()[-1])

@@ -1156,3 +1156,14 @@ def test_the_map_has_a_time_axis_leading_to_its_moments(page, url):
     ticks.nth(1).click()
     expect(page).to_have_url(re.compile(r"/map\?map=.*&at=\d+$"))
     expect(page.locator("h1 small")).to_contain_text(label.split()[-1])
+
+
+@pytest.mark.parametrize("seconds", [30, 3600, 3 * 86400, 200 * 86400, 30 * 365 * 86400])
+def test_a_time_axis_has_a_few_round_ticks_for_any_span(seconds):
+    start = 1_709_533_918 * 10**9  # 2024-03-04 06:31:58 UTC
+    axis = time_axis.axis(start, start + seconds * 10**9, start, 960)
+    assert 2 <= len(axis.ticks) <= time_axis.MAX_TICKS
+    xs = [tick.x for tick in axis.ticks]
+    assert xs == sorted(xs) and axis.ends[0] <= xs[0] and xs[-1] <= axis.ends[1]
+    assert all(tick.t % 10**9 == 0 and start <= tick.t for tick in axis.ticks)
+    assert re.match(r"Mar 0[45]|20\d\d", axis.ticks[0].label)  # the first one says its date

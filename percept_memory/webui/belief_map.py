@@ -176,11 +176,10 @@ def lay_out(view: Projection, regions: list[DrawnRegion],
         drawing.block(Box(o.x - RADIUS, o.y - RADIUS, 2 * RADIUS, 2 * RADIUS))
     height = FONT * 1.2
     region_labels = {}
-    for r in regions:
-        places = (Box(r.x + 4, r.y + 2, 0, 0), Box(r.x, r.y - height - 2, 0, 0),
-                  Box(r.x + 4, r.y + r.height - height - 2, 0, 0),
-                  Box(r.x, r.y + r.height + 2, 0, 0))
-        if label := drawing.place_in(r.name, places):
+    for r in regions:  # inside its top left corner, above it, inside its foot, below it
+        corners = ((r.x + 4, r.y + 2), (r.x, r.y - height - 2),
+                   (r.x + 4, r.y + r.height - height - 2), (r.x, r.y + r.height + 2))
+        if label := drawing.place_at(r.name, corners):
             region_labels[r.name] = label
     crowds: list[Crowd] = []
     widest = f"+{len(objects)}"  # a marker's room, taken when its crowd begins

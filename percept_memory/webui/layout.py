@@ -83,12 +83,12 @@ class Layout:
                 return Label(text, box, ring > 0)
         return None
 
-    def place_in(self, text: str, boxes: Iterable[Box]) -> Label | None:
-        """The text's label in the first free one of these places (each as large as the text
-        needs at its top left), or None."""
+    def place_at(self, text: str, corners: Iterable[tuple[float, float]]) -> Label | None:
+        """The text's label at the first of these top left corners where it is free, or
+        None."""
         width, height = self.text_width(text), self.font * 1.2
-        for place in boxes:
-            box = Box(place.x, place.y, width, height)
+        for x, y in corners:
+            box = Box(x, y, width, height)
             if self.is_free(box):
                 self.block(box)
                 return Label(text, box, False)

@@ -89,16 +89,16 @@ def shown(name: str, value: Any) -> Shown:
         return Shown(name, "links", [(v, _is_web_link(v)) for v in value])
     if _is_document(value):
         fields = shown_fields(value)
-        kind = _kind_of(value)
-        return Shown(name, "fields", fields, f"{kind}, {len(fields)} fields" if kind
-                     else f"{len(fields)} fields")
+        count, named = f"{len(fields)} fields", _type_of(value)
+        return Shown(name, "fields", fields, f"{named}, {count}" if named else count)
     if isinstance(value, list | tuple) and value and all(map(_is_document, value)):
         return Shown(name, "records", records(value),
-                     f"{len(value)} × {_kind_of(value[0]) or 'documents'}")
+                     f"{len(value)} × {_type_of(value[0]) or 'documents'}")
     return Shown(name, "text", _text(value))
 
 
 def records(documents: list | tuple) -> Records:
+    """The first MAX_ROWS documents as rows: a contour may hold thousands of points."""
     rows = [{item.name: item for item in shown_fields(d)} for d in documents[:MAX_ROWS]]
     columns = list(dict.fromkeys(name for row in rows for name in row))
     return Records(columns, rows, len(documents) - len(rows))
@@ -147,7 +147,7 @@ def _is_document(value: Any) -> bool:
     return isinstance(value, BaseModel | Unknown) or (isinstance(value, Mapping) and bool(value))
 
 
-def _kind_of(document: Any) -> str | None:
+def _type_of(document: Any) -> str | None:
     """A document's type name (a foreign one's `_type`); None for a plain map."""
     if isinstance(document, Mapping):
         named = document.get("_type")
@@ -190,4 +190,7 @@ def _text(value: Any) -> str:
     if isinstance(value, tuple | list):
         shown = ", ".join(_text(v) for v in value[:MAX_ITEMS])
         return shown + (f", … ({len(value) - MAX_ITEMS} more)" if len(value) > MAX_ITEMS else "")
+    if isinstance(value, Mapping):  # in a list of mixed items
+        return "{" + ", ".join(f"{k}: {_text(v)}" for k, v in value.items()
+                               if k not in HIDDEN_FIELDS) + "}"
     return str(value)

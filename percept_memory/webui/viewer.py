@@ -1,8 +1,8 @@
 """The scene viewer (issue 17): what the scene page draws over each camera image, as SVG, so
 that it reads without JavaScript. Per cluster whose image region lies on the image: its box,
 its mask's outline, and the box of every annotation that has one (a Detection's, a Text's,
-a web lookup's: a `box` field, in image pixels), each shape tagged with its layer (box, mask
-or the annotation's type) and annotator, which static/viewer.js switches on and off; the
+a web lookup's: a `box` field, in image pixels), each shape tagged with its layer (region,
+mask or the annotation's type) and annotator, which static/viewer.js switches on and off; the
 cluster's number, and its labels, shown on hover and focus by CSS. Depth images carry their
 range for the false-colour legend (images.false_colour)."""
 
@@ -17,11 +17,11 @@ from bson import ObjectId
 from percept_memory.memory.types import Annotation, Cluster, Image, ImageROI, Scene
 
 from .images import depth_range, is_depth
+from .layout import CHAR_WIDTH
 from .render import type_name
 
 BOX, MASK = "region", "mask"  # the layers of the cluster's own region
 OUTLINE_TOLERANCE = 1.0  # px: a mask outline may stray this far from the mask's edge
-CHAR_WIDTH = 0.62  # of the font size: wide enough for the average character of a label
 
 
 @dataclass
@@ -50,9 +50,8 @@ class Mark:
 
     number: int
     cluster_id: ObjectId
-    labels: list[str]
     shapes: list[Shape]
-    tip: Tip
+    tip: Tip  # the object's name and the labels annotators gave
 
 
 @dataclass
@@ -95,11 +94,9 @@ def _mark(number: int, cluster: Cluster, roi: ImageROI, names: dict, image: Imag
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
     shapes += [Shape(type_name(a), a.source, tuple(a.box)) for a in annotations
                if getattr(a, "box", None) is not None]
-    labels = _distinct(label for a in annotations for label in a.labels())
-    name = names.get(cluster.object_id)
-    text = f"{number}. " + ": ".join(filter(None, [name, ", ".join(labels)])) if name or labels \
-        else f"{number}. no labels"
-    return Mark(number, cluster.id, labels, shapes, _tip(text, roi.box, image))
+    labels = ", ".join(_distinct(label for a in annotations for label in a.labels()))
+    said = ": ".join(filter(None, [names.get(cluster.object_id), labels])) or "no labels"
+    return Mark(number, cluster.id, shapes, _tip(f"{number}. {said}", roi.box, image))
 
 
 def _tip(text: str, box: tuple[int, int, int, int], image: Image) -> Tip:

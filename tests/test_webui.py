@@ -110,6 +110,8 @@ def viewed(sample):
                                       source="LineModDetector"),
                             Text(text="IKEA", box=(x + 4, y + 4, w // 3, h // 4),
                                  source="OCRAnnotator")]
+        if i == 3:
+            annotations.append(Detection(name=HOSTILE, box=(x, y, w, h), source=f'"{HOSTILE}'))
         clusters.append(Cluster(hypotheses=[roi], annotations=annotations))
     return Scene(timestamp=VIEWED_STAMP, robot="pr2-viewer", images=sample.images,
                  clusters=clusters)
@@ -953,12 +955,13 @@ def test_scene_viewer_draws_each_layer_over_the_image_and_switches_it_off(page, 
     masks, detections, texts = (color.locator(f'.shape[data-layer="{layer}"]') for layer in
                                 ("mask", "pm.annotation.Detection", "pm.annotation.Text"))
     expect(masks).to_have_count(len(viewed.clusters))
-    expect(detections).to_have_count(1)
+    expect(detections).to_have_count(2)  # the plate's and the hostile one
     expect(texts).to_have_count(1)
     shot(page, "13-scene-viewer")
 
     color.get_by_label("pm.annotation.Detection").uncheck()
-    expect(detections).to_be_hidden()
+    for detection in detections.all():
+        expect(detection).to_be_hidden()
     expect(texts).to_be_visible()
     expect(regions.first).to_be_visible()
     color.get_by_label("OCRAnnotator").uncheck()
@@ -968,7 +971,7 @@ def test_scene_viewer_draws_each_layer_over_the_image_and_switches_it_off(page, 
         expect(masks.nth(i)).to_be_hidden()
         expect(regions.nth(i)).to_be_visible()
     color.get_by_label("pm.annotation.Detection").check()
-    expect(detections).to_be_visible()
+    expect(detections.first).to_be_visible()
     expect(texts).to_be_hidden()  # its annotator is still off
 
 
@@ -1032,6 +1035,26 @@ def test_depth_is_shown_in_false_colour_with_its_range(page, url, viewed):
     expect(depth.locator("figcaption")).to_contain_text(f"{near:.2f} m … {far:.2f} m")
     expect(depth.get_by_role("img", name=re.compile("near, blue, to far, red"))).to_be_visible()
     shot(page, "14-depth")
+
+
+def test_scene_viewer_reads_without_javascript(browser, url, viewed):
+    context = browser.new_context(java_script_enabled=False)
+    page = context.new_page()
+    page.goto(f"{url}/scenes/{viewed.id}")
+    expect(page.locator("#image-color rect.shape.region")).to_have_count(len(viewed.clusters))
+    for shape in page.locator("#image-color .shape").all():
+        expect(shape).to_be_visible()
+    expect(page.locator("#image-color form.layers")).to_be_hidden()  # they need the script
+    expect(page.locator("#image-color .zoom")).to_be_hidden()
+    page.locator("#image-color a.mark").first.locator("rect.region").hover()
+    expect(page.locator("#image-color .tip").first).to_be_visible()  # CSS alone
+    context.close()
+
+
+def test_the_viewer_escapes_what_annotators_said(client, viewed):
+    body = client.get(f"/scenes/{viewed.id}").text
+    assert "<script>" not in body and "&lt;script&gt;" in body
+    assert 'data-annotator="&#34;&lt;script&gt;' in body
 
 
 def test_the_viewer_may_run_its_own_script_only(client, viewed):

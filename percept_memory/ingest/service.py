@@ -43,16 +43,19 @@ def problems_of(error: ValidationError, item: Any) -> list[dict]:
     ]
 
 
-def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 0) -> Scene:
+def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 0,
+             screened: bool = False) -> Scene:
     """A Scene from a Scene or from interchange data (a dict as parsed from JSON). `context`
-    carries what reading it needs, e.g. the scene-log folder that relative paths refer to."""
+    carries what reading it needs, e.g. the scene-log folder that relative paths refer to.
+    `screened`: the data was parsed from JSON text that passed json_input.screened, so walking
+    it for input_problems would find nothing."""
     if isinstance(data, Scene):
         return data
     if not isinstance(data, Mapping):
         raise IngestError([{"item": item, "path": "", "message":
                             f"a scene is a JSON object, not {type(data).__name__}",
                             "type": "model_type"}])
-    if problems := input_problems(data):
+    if not screened and (problems := input_problems(data)):
         raise IngestError([{"item": item, **problem} for problem in problems])
     try:
         return Scene.model_validate(dict(data), context=dict(context or {}))
@@ -83,12 +86,14 @@ class IngestService:
         context: Mapping | None = None,
         labels: Sequence[str] | None = None,
         wait: float | None = None,
+        screened: bool = False,
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
         any item is invalid (the IngestError names every problem, by label or index). With
         `wait` (seconds), also wait until the new scenes went through the pipeline (their
-        belief is current), at most that long: `settled` tells whether they did."""
-        scenes = self._validated(items, context, labels)
+        belief is current), at most that long: `settled` tells whether they did. `screened`:
+        as for `validate`."""
+        scenes = self._validated(items, context, labels, screened)
         results = self._stored(self.store.put_scenes(scenes))
         if wait is not None:
             self.settled(results, wait)
@@ -139,12 +144,13 @@ class IngestService:
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
         return list(map(Ingested, scenes, self._stored(write.result())))
 
-    def _validated(self, items, context, labels) -> list[Scene]:
+    def _validated(self, items, context, labels, screened=False) -> list[Scene]:
         context = {**self.limits, **(context or {})}
         scenes, problems = [], []
         for index, data in enumerate(items):
             try:
-                scenes.append(validate(data, context, item=labels[index] if labels else index))
+                scenes.append(validate(data, context, labels[index] if labels else index,
+                                       screened))
             except IngestError as error:
                 problems.extend(error.problems)
         if problems:

@@ -6,6 +6,7 @@ import base64
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -246,3 +247,29 @@ def test_the_published_example_ingests(store):
     stored = store.get_scene(ids.scene_id)
     assert stored.clusters[0].annotations[-1].type_name == "lab.annotation.Weight"
     assert stored.clusters[0].hypotheses[0].crop.data.shape == (8, 8, 3)
+
+
+@pytest.mark.parametrize("fmt, extension", [("png", ".png"), ("jpeg", ".jpg")])
+def test_an_image_given_as_a_file_is_stored_as_that_file_and_reads_back_exactly(
+        store, kitchen_rgb, fmt, extension):
+    file = cv2.imencode(extension, kitchen_rgb[100:164, 200:264])[1].tobytes()
+    scene = valid_scene(seed=7, timestamp=STAMP + 70 + len(fmt))
+    scene["images"] = {"color": {fmt: b64(file), "encoding": "bgr8"}}
+    ids = IngestService(store).ingest(scene)
+    stored = store.scenes.find_one({"_id": ids.scene_id})["images"]["color"]
+    assert bytes(stored["data"]) == file  # not decoded and encoded again
+    read = store.get_scene(ids.scene_id).images["color"]
+    assert np.array_equal(read.data, cv2.imdecode(np.frombuffer(file, np.uint8),
+                                                  cv2.IMREAD_UNCHANGED))
+
+
+def test_an_image_whose_pixels_changed_is_encoded_again(kitchen_rgb):
+    file = cv2.imencode(".png", kitchen_rgb[:64, :64])[1].tobytes()
+    image = Image.model_validate({"png": b64(file)}, context={})
+    assert image.file == file
+    with pytest.raises(ValueError):  # the pixels of a file are not changed in place
+        image.data[0, 0] = 0
+    image.data = kitchen_rgb[64:128, :64]
+    assert image.file is None
+    image = Image.model_validate({"png": b64(file), "format": "jpeg"}, context={})
+    assert image.file is None

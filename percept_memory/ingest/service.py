@@ -93,8 +93,9 @@ class IngestService:
         `wait` (seconds), also wait until the new scenes went through the pipeline (their
         belief is current), at most that long: `settled` tells whether they did. `screened`:
         as for `validate`."""
-        scenes = self._validated(items, context, labels, screened)
-        results = self._stored(self.store.put_scenes(scenes))
+        with self.pipeline.ingesting():
+            scenes = self._validated(items, context, labels, screened)
+            results = self._stored(self.store.put_scenes(scenes))
         if wait is not None:
             self.settled(results, wait)
         return results

@@ -124,19 +124,36 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
                 response.raise_for_status()
                 progress.advance(task, len(response.json()["scenes"]))
             seconds = time.perf_counter() - start
-            pending = client.get("/api/pipeline").json()["maps"][0]["pending"]
+            pending = _pending(client)
+            caught_up = _caught_up_s(client) if consolidator else None
     finally:
         server.terminate()
         server.wait(30)
     return {
         "consolidator_in_server": consolidator,
         "scenes_pending_at_the_end": pending,
+        # it gives way to ingest (memory/pipeline.py) and catches up after the burst
+        "belief_caught_up_s_after_the_end": caught_up,
         "scenes": count,
         "batch": batch,
         "request_mb": round(sum(map(len, bodies)) / len(bodies) / 2**20, 2),
         "clusters_per_s": round(count * CLUSTERS / seconds),
         "requests_per_s": round(len(bodies) / seconds, 2),
     }
+
+
+def _pending(client: httpx2.Client) -> int:
+    return client.get("/api/pipeline").json()["maps"][0]["pending"]
+
+
+def _caught_up_s(client: httpx2.Client, timeout: float = 600) -> float | None:
+    """Seconds until no scene is pending (None: not within the timeout)."""
+    start = time.perf_counter()
+    while _pending(client):
+        if time.perf_counter() - start > timeout:
+            return None
+        time.sleep(0.1)
+    return round(time.perf_counter() - start, 1)
 
 
 def _wait_until_up(client: httpx2.Client) -> None:

@@ -10,8 +10,8 @@ input gets a 422 naming the field instead of a server error (README: Security).
 - field names: no NUL, none starting with `$` (MongoDB's operators).
 
 Walking every value of a parsed batch costs more than parsing it, so `parse` first screens the
-raw bytes, where most of these problems cannot hide, and only input that fails the screen is
-walked (`parse` says which).
+raw bytes: what the screen clears cannot hold any of these problems and need not be walked;
+anything else is walked as before (`parse` says which).
 """
 
 from __future__ import annotations

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -12,7 +13,7 @@ import pytest
 
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
-from percept_memory.ingest.service import IngestError, IngestService
+from percept_memory.ingest.service import CHUNK, IngestError, IngestService
 from percept_memory.memory.documents import assign_ids
 from percept_memory.memory.types import FeatureVector, Image, Scene
 
@@ -231,6 +232,29 @@ def test_a_stream_repeating_a_scene_across_batches_stores_it_once(store):
     assert [r.created for r in results] == [True, True, False]
     assert results[0].scene_id == results[2].scene_id
     assert store.scenes.count_documents({"timestamp": STAMP + 500}) == 1
+
+
+def test_a_batch_sent_in_chunks_stores_nothing_when_its_last_scene_is_invalid(store):
+    """The first chunks of a batch go to the server while the rest are validated; an invalid
+    scene after them abandons the transaction."""
+    batch = [valid_scene(seed=60 + i, timestamp=STAMP + 600 + i) for i in range(2 * CHUNK + 1)]
+    batch[-1]["timestamp"] = "yesterday"
+    before = snapshot(store)
+    with pytest.raises(IngestError) as refused:
+        IngestService(store).ingest_batch(batch)
+    assert [p["item"] for p in refused.value.problems] == [2 * CHUNK]
+    assert snapshot(store) == before
+    assert store.outbox.count_documents({"time": {"$gte": STAMP + 600}}) == 0
+
+
+def test_a_batch_sent_in_chunks_with_scenes_stored_before_keeps_their_ids(store):
+    batch = [valid_scene(seed=70 + i, timestamp=STAMP + 700 + i) for i in range(2 * CHUNK + 1)]
+    stored = IngestService(store).ingest_batch(batch[CHUNK + 1 : CHUNK + 3])
+    results = IngestService(store).ingest_batch(batch)
+    assert [r.created for r in results] == [not CHUNK < i < CHUNK + 3 for i in range(len(batch))]
+    assert results[CHUNK + 1 : CHUNK + 3] == [replace(r, created=False) for r in stored]
+    assert store.scenes.count_documents({"timestamp": {"$gte": STAMP + 700}}) == len(batch)
+    assert store.outbox.count_documents({"time": {"$gte": STAMP + 700}}) == len(batch)
 
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -1,12 +1,14 @@
 """The one way in: validate -> store (with the outbox) -> ids.
 
 HTTP, the CLI and every importer hand scenes to `IngestService`. A batch is validated whole
-before anything is written, so bad input never leaves half a batch behind; the valid batch is
-stored in one transaction, each new scene with its outbox entry: the after-store stages
-(identity consolidation, enqueueing lookups) then run from the outbox in the memory pipeline
-(memory/pipeline.py), exactly once, in time order per map. Ingest answers once the scenes are
-durably stored; a caller that needs the belief updated first waits for it (`wait`). Scenes
-stored before (same robot, same timestamp) are not written again and keep their ids.
+before anything is committed, so bad input never leaves half a batch behind; the valid batch
+is stored in one transaction (its first scenes sent while the next are being validated; the
+transaction is abandoned if any is invalid), each new scene with its outbox entry: the
+after-store stages (identity consolidation, enqueueing lookups) then run from the outbox in the
+memory pipeline (memory/pipeline.py), exactly once, in time order per map. Ingest answers once
+the scenes are durably stored; a caller that needs the belief updated first waits for it
+(`wait`). Scenes stored before (same robot, same timestamp) are not written again and keep
+their ids.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 
 DEFAULT_BATCH = 32
+CHUNK = 8  # scenes of a batch sent to the server while the next ones are validated
 UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a field's path
 
 
@@ -94,8 +97,8 @@ class IngestService:
         belief is current), at most that long: `settled` tells whether they did. `screened`:
         as for `validate`."""
         with self.pipeline.ingesting():
-            scenes = self._validated(items, context, labels, screened)
-            results = self._stored(self.store.put_scenes(scenes))
+            chunks = self._validated_chunks(items, context, labels, screened)
+            results = self._stored(self.store.put_scene_chunks(chunks))
         if wait is not None:
             self.settled(results, wait)
         return results
@@ -145,18 +148,28 @@ class IngestService:
     def _landed(self, scenes: list[Scene], write: Future) -> list[Ingested]:
         return list(map(Ingested, scenes, self._stored(write.result())))
 
-    def _validated(self, items, context, labels, screened=False) -> list[Scene]:
+    def _validated(self, items, context, labels) -> list[Scene]:
+        return [scene for chunk in self._validated_chunks(items, context, labels)
+                for scene in chunk]
+
+    def _validated_chunks(self, items, context, labels, screened=False) -> Iterator[list[Scene]]:
+        """The items validated, CHUNK at a time while all are valid (to be stored while the
+        next are validated); in the end an IngestError naming every problem, if any."""
         context = {**self.limits, **(context or {})}
-        scenes, problems = [], []
+        chunk, problems = [], []
         for index, data in enumerate(items):
             try:
-                scenes.append(validate(data, context, labels[index] if labels else index,
-                                       screened))
+                chunk.append(validate(data, context, labels[index] if labels else index,
+                                      screened))
             except IngestError as error:
                 problems.extend(error.problems)
+            if len(chunk) == CHUNK and not problems:
+                yield chunk
+                chunk = []
         if problems:
             raise IngestError(problems)
-        return scenes
+        if chunk:
+            yield chunk
 
     def _stored(self, results: list[SceneIds]) -> list[SceneIds]:
         """Tell the pipeline there is work (when new scenes were stored); hand the ids back."""

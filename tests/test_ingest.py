@@ -10,6 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from pymongo.errors import OperationFailure
+from pymongo.synchronous.client_session import ClientSession
 
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
@@ -255,6 +257,41 @@ def test_a_batch_sent_in_chunks_with_scenes_stored_before_keeps_their_ids(store)
     assert results[CHUNK + 1 : CHUNK + 3] == [replace(r, created=False) for r in stored]
     assert store.scenes.count_documents({"timestamp": {"$gte": STAMP + 700}}) == len(batch)
     assert store.outbox.count_documents({"time": {"$gte": STAMP + 700}}) == len(batch)
+
+
+TRANSIENT = {"errorLabels": ["TransientTransactionError"]}  # pymongo runs the transaction again
+
+
+@pytest.mark.parametrize("fails", ["the second chunk's insert", "the commit"])
+def test_a_chunked_batch_whose_transaction_is_run_again_is_stored_once(store, monkeypatch,
+                                                                      fails):
+    failures = iter([OperationFailure("write conflict", 112, TRANSIENT)])
+    if fails == "the commit":
+        commit = ClientSession.commit_transaction
+
+        def flaky(session):
+            if error := next(failures, None):
+                session.abort_transaction()  # as the server does
+                raise error
+            commit(session)
+
+        monkeypatch.setattr(ClientSession, "commit_transaction", flaky)
+    else:
+        insert, calls = store._insert, []
+
+        def flaky(documents, session):
+            calls.append(documents)
+            if len(calls) == 2 and (error := next(failures, None)):
+                raise error
+            insert(documents, session)
+
+        monkeypatch.setattr(store, "_insert", flaky)
+    stamp = STAMP + (800 if fails == "the commit" else 900)
+    batch = [valid_scene(seed=80 + i, timestamp=stamp + i) for i in range(2 * CHUNK + 1)]
+    results = IngestService(store).ingest_batch(batch)
+    assert next(failures, None) is None and all(r.created for r in results)
+    assert store.scenes.count_documents({"timestamp": {"$gte": stamp, "$lt": stamp + 100}}) \
+        == len(batch)
 
 
 DOCS = Path(__file__).resolve().parents[1] / "docs"

@@ -204,15 +204,21 @@ class MemoryStore(StoreBase):
         prepared: list[docs.PreparedWrite] = []
         handed: queue.SimpleQueue = queue.SimpleQueue()
         sent: list[docs.Documents] = []
+        all_sent = False
 
         def work(session):  # run again from the start when the transaction is retried
+            nonlocal all_sent
             for documents in sent:
                 self._insert(documents, session)
-            while (documents := handed.get()) is not None:
+            while not all_sent:
+                documents = handed.get()
                 if isinstance(documents, BaseException):
                     raise documents
-                sent.append(documents)
-                self._insert(documents, session)
+                if documents is None:
+                    all_sent = True
+                else:
+                    sent.append(documents)
+                    self._insert(documents, session)
 
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmem-writer") as writer:
             committed = writer.submit(self._transaction, work, retry_unreachable=False)

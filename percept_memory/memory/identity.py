@@ -288,13 +288,13 @@ class Histogram:
         cdf = gammainc(shape, EDGES / scale)
         return cls(weight, weight * np.diff(cdf) / max(cdf[-1] - cdf[0], 1e-12))
 
-    def learn(self, u: float, memory: float, weight: float = 1.0) -> None:
-        """Take in one value, counted `weight` times; beyond `memory` the past fades."""
-        if weight <= 0:
+    def learn_all(self, values: np.ndarray, memory: float) -> None:
+        """Take in values, each counted once; beyond `memory` values the past fades."""
+        if not len(values):
             return
-        if self.weight + weight > memory:
-            self.counts *= (memory - weight) / self.weight
-        self.counts[_step(u)] += weight
+        if self.weight + len(values) > memory:
+            self.counts *= max(memory - len(values), 0.0) / self.weight
+        np.add.at(self.counts, _step(values), 1.0)
         self.weight = float(self.counts.sum())
 
     def log_density(self, u):
@@ -401,8 +401,12 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
     # the cues of every pair, then their odds at once
-    looked = looks([_by_type(o.evidence) for o in new],
-                   [_by_type(k.last.evidence) for k in known], params.evidence_floor)
+    # the cues of every pair, then their odds at once; the new observations with each other
+    # too (one scene's clusters are different objects: _learn)
+    groups = [_by_type(o.evidence) for o in new]
+    looked = looks(groups, [_by_type(k.last.evidence) for k in known] + groups,
+                   params.evidence_floor)
+    looked, looked_apart = looked[:, :len(known)], looked[:, len(known):]
     places = proximities([o.position for o in new], [k.last.position for k in known],
                          params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
@@ -446,7 +450,7 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
-    _learn(calibration, new, decisions[:len(new)], assigned, looked, places, params)
+    _learn(calibration, decisions[:len(new)], assigned, looked, places, looked_apart, params)
     return decisions
 
 
@@ -470,15 +474,17 @@ def _other_looks(new: Sequence[Observation], known: Sequence[Known],
     return odds, keys
 
 
-def _learn(calibration: Calibration, new: Sequence[Observation], decisions: list[Decision],
-           assigned: dict[int, int], looked: np.ndarray, places: np.ndarray,
+def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
+           looked: np.ndarray, places: np.ndarray, looked_apart: np.ndarray,
            params: Parameters) -> None:
     """Teach the calibration (soft EM, thesis 6.2.3 learnt offline): a stay shows how alike
     and how near one object seen twice is, each cue's value counted by how sure the current
     model is that it belongs to the same object rather than to a turned (newview) or moved
     one, so a wrong stay cannot widen what "the same" means. Two clusters of one scene are
-    two different objects for sure: every such pair shows how alike and how near different
-    objects are, with no decision in the loop to teach a mistake back to the model."""
+    two different objects for sure (`looked_apart`: the scene's clusters with each other):
+    every such pair shows how alike different objects look, with no decision in the loop to
+    teach a mistake back to the model; how near another object lies from one's place is
+    learnt from the confident decisions' other pairings."""
     memory = params.memory
     with np.errstate(invalid="ignore"):
         look_u, place_u = surprise(looked), surprise(places)
@@ -495,14 +501,8 @@ def _learn(calibration: Calibration, new: Sequence[Observation], decisions: list
             for k in np.flatnonzero(~np.isnan(place_u[i])):
                 if k != j:
                     calibration.place.different.learn(float(place_u[i, k]), memory)
-    if len(new) < 2:
-        return
-    pairs = np.triu_indices(len(new), 1)
-    groups = [_by_type(o.evidence) for o in new]
-    with np.errstate(invalid="ignore"):
-        alike = surprise(looks(groups, groups, params.evidence_floor)[pairs])
-    for u in alike[~np.isnan(alike)]:
-        calibration.look.different.learn(float(u), memory)
+    alike = surprise(looked_apart[np.triu_indices_from(looked_apart, 1)])
+    calibration.look.different.learn_all(alike[~np.isnan(alike)], memory)
 
 
 def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[int, int]:

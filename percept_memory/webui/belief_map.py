@@ -28,7 +28,8 @@ from percept_memory.queries.model import Time
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.results import ObjectAt
 
-from .html import PageError, bounded_int, page
+from . import scene3d
+from .html import CSP, SCRIPT_CSP, PageError, bounded_int, page
 
 SECOND = 1_000_000_000
 MAX_REGIONS = 500
@@ -87,8 +88,9 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
     @router.get("/map")
-    async def map_page(request: Request, map: str = "", t: str = "",
-                       at: str = "") -> HTMLResponse:
+    async def map_page(request: Request, map: str = "", t: str = "", at: str = "",
+                       view: str = "") -> HTMLResponse:
+        in_3d = scene3d.wanted(view)
         maps = await run_in_threadpool(_maps, store)
         if not maps:
             return page(request, "map.html", {"span": None})
@@ -101,11 +103,13 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         def load():
             believed = engine.what_is_at(map=chosen, t=moment).objects
             placed = [o for o in believed if o.position is not None]
+            solid = scene3d.map_view(region_boxes(store, chosen), placed) if in_3d else None
             return believed, placed, floor_plan(store, chosen, [o.position for o in placed]), \
-                _neighbours(store, chosen, moment)
+                _neighbours(store, chosen, moment), solid
 
         try:
-            believed, placed, (view, regions), (earlier, later) = await run_in_threadpool(load)
+            believed, placed, (view, regions), (earlier, later), solid = \
+                await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
         objects = [DrawnObject(o, *view.point(o.position[0], o.position[1])) for o in placed]
@@ -113,8 +117,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             "maps": maps, "map": chosen, "span": span, "t": moment, "view": view,
             "regions": regions, "objects": objects,
             "unplaced": [o for o in believed if o.position is None],
-            "earlier": earlier, "later": later, "second": SECOND,
-        })
+            "earlier": earlier, "later": later, "second": SECOND, "view3d": solid,
+        }, policy=SCRIPT_CSP if in_3d else CSP)
 
     return router
 
@@ -124,7 +128,7 @@ def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width:
     """The map's regions drawn top-down, in a projection that holds them and these positions
     (metres: x, y and any more coordinates) in at most width x max_height pixels. The map page
     and the object page's track draw on it (macros.html: floor_plan)."""
-    boxes = _region_boxes(store, map_name)
+    boxes = region_boxes(store, map_name)
     xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
     ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
     view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
@@ -178,16 +182,18 @@ def _neighbours(store: MemoryStore, map_name: str, t: int) -> tuple[int | None, 
     return (before and before["timestamp"]), (after and after["timestamp"])
 
 
-def _region_boxes(store: MemoryStore,
-                  map_name: str | None) -> dict[str, tuple[list[float], list[float]]]:
-    """Per region of the map, the (x, y) box around its objects last seen there (by the
-    objects' map index)."""
+def region_boxes(store: MemoryStore,
+                 map_name: str | None) -> dict[str, tuple[list[float], list[float]]]:
+    """Per region of the map, the (x, y, z) box around its objects last seen there (by the
+    objects' map index), widened by PAD_M on the ground; z is 0 for positions without one."""
+    z = {"$ifNull": [{"$arrayElemAt": ["$position", 2]}, 0.0]}
     found = store.db[OBJECTS].aggregate([
         {"$match": {"map": map_name, "region": {"$type": "string"}, "x": {"$ne": None}}},
         {"$group": {"_id": "$region", "x0": {"$min": "$x"}, "y0": {"$min": "$y"},
-                    "x1": {"$max": "$x"}, "y1": {"$max": "$y"}}},
+                    "z0": {"$min": z}, "x1": {"$max": "$x"}, "y1": {"$max": "$y"},
+                    "z1": {"$max": z}}},
         {"$sort": {"_id": 1}},
         {"$limit": MAX_REGIONS},
     ])
-    return {b["_id"]: ([b["x0"] - PAD_M, b["y0"] - PAD_M], [b["x1"] + PAD_M, b["y1"] + PAD_M])
-            for b in found}
+    return {b["_id"]: ([b["x0"] - PAD_M, b["y0"] - PAD_M, b["z0"]],
+                       [b["x1"] + PAD_M, b["y1"] + PAD_M, b["z1"]]) for b in found}

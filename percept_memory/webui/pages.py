@@ -29,10 +29,11 @@ from . import (
     live,
     pipeline,
     render,
+    scene3d,
     scene_log,
     search,
 )
-from .html import HERE, LIST_FIELDS, PageError, page, parse_id
+from .html import CSP, HERE, LIST_FIELDS, SCRIPT_CSP, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
@@ -70,7 +71,8 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return await run_in_threadpool(_found, get, parse_id(text, kind))
 
     @router.get("/scenes/{scene_id}")
-    async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
+    async def scene_page(request: Request, scene_id: str, view: str = "") -> HTMLResponse:
+        in_3d = scene3d.wanted(view)
         scene = await stored(store.get_scene, scene_id, "scene")
 
         def load() -> tuple[dict, dict]:
@@ -83,10 +85,11 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
         names, explained = await run_in_threadpool(load)
         plan = None if scene.images else await run_in_threadpool(_plan, store, scene)
+        solid = await run_in_threadpool(scene3d.scene_view, scene, names) if in_3d else None
         return page(request, "scene.html", {
             "scene": scene, "names": names, "events": explained, "boxes": _boxes(scene),
-            "log": render.log_by_annotator(scene.log), "plan": plan,
-        })
+            "log": render.log_by_annotator(scene.log), "plan": plan, "view3d": solid,
+        }, policy=SCRIPT_CSP if in_3d else CSP)
 
     @router.get("/clusters/{cluster_id}")
     async def cluster_page(request: Request, cluster_id: str) -> HTMLResponse:

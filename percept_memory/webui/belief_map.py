@@ -9,6 +9,8 @@ slider picks the moment; links step to the scene before and after it.
 The page shows one map at a time (`map`, default: the map of the newest scene), chosen from a
 list: regions, objects and the belief are per map. The store keeps no outlines of regions, so
 a region is drawn as the box around the positions of the map's objects last seen in it.
+With `view=3d` the page adds the same in 3D (scene3d.py); the playback page draws the belief
+of its scene's moment as this page does (drawn_belief).
 """
 
 from __future__ import annotations
@@ -84,6 +86,32 @@ class DrawnObject:
     y: float
 
 
+@dataclass
+class DrawnBelief:
+    """The objects believed in a map at a moment, drawn on its floor plan (macros.html:
+    believed_objects); those without a position listed apart."""
+
+    view: Projection
+    regions: list[DrawnRegion]
+    objects: list[DrawnObject]
+    unplaced: list[ObjectAt]
+
+    @property
+    def believed(self) -> list[ObjectAt]:
+        return [o.belief for o in self.objects] + self.unplaced
+
+
+def drawn_belief(store: MemoryStore, engine: QueryEngine, map_name: str,
+                 t: int) -> DrawnBelief:
+    """What the map page and the playback draw: QueryEngine.what_is_at on the floor plan."""
+    believed = engine.what_is_at(map=map_name, t=t).objects
+    placed = [o for o in believed if o.position is not None]
+    view, regions = floor_plan(store, map_name, [o.position for o in placed])
+    return DrawnBelief(view, regions,
+                       [DrawnObject(o, *view.point(o.position[0], o.position[1])) for o in placed],
+                       [o for o in believed if o.position is None])
+
+
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
@@ -98,25 +126,20 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         if chosen not in maps:
             raise PageError(404, f"no map named {chosen!r}")
         span = await run_in_threadpool(_recorded_span, store, chosen)
-        moment = _moment(t, at) or span[1]
+        moment = moment_of(t, at) or span[1]
 
         def load():
-            believed = engine.what_is_at(map=chosen, t=moment).objects
-            placed = [o for o in believed if o.position is not None]
-            solid = scene3d.map_view(region_boxes(store, chosen), placed) if in_3d else None
-            return believed, placed, floor_plan(store, chosen, [o.position for o in placed]), \
-                _neighbours(store, chosen, moment), solid
+            belief = drawn_belief(store, engine, chosen, moment)
+            solid = scene3d.map_view(region_boxes(store, chosen),
+                                     belief.believed) if in_3d else None
+            return belief, _neighbours(store, chosen, moment), solid
 
         try:
-            believed, placed, (view, regions), (earlier, later), solid = \
-                await run_in_threadpool(load)
+            belief, (earlier, later), solid = await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
-        objects = [DrawnObject(o, *view.point(o.position[0], o.position[1])) for o in placed]
         return page(request, "map.html", {
-            "maps": maps, "map": chosen, "span": span, "t": moment, "view": view,
-            "regions": regions, "objects": objects,
-            "unplaced": [o for o in believed if o.position is None],
+            "maps": maps, "map": chosen, "span": span, "t": moment, "belief": belief,
             "earlier": earlier, "later": later, "second": SECOND, "view3d": solid,
         }, policy=SCRIPT_CSP if in_3d else CSP)
 
@@ -140,7 +163,7 @@ def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width:
     return view, regions
 
 
-def _moment(t: str, at: str) -> int | None:
+def moment_of(t: str, at: str) -> int | None:
     """The moment the URL asks for, if any."""
     if t.strip() and at.strip():
         raise PageError(422, "give t or at, not both")

@@ -1,7 +1,9 @@
 """The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
 its image, cluster boxes, log, relations and annotations, and a cluster; `mount_pages` adds
 them and the pages of the other modules (scene log, object history, search, map, annotators,
-enrichment, live). Server-rendered, no JavaScript (html.py: what pages share).
+enrichment, live, playback). Server-rendered, no JavaScript (html.py: what pages share)
+but for the 3D view a scene or map page adds with `view=3d` (scene3d.py), the playback's
+steps without reload and the live page's updates.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from . import (
     history,
     live,
     pipeline,
+    playback,
     render,
     scene3d,
     scene_log,
@@ -53,7 +56,7 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     for router in (scene_log.routes(store), page_routes(store), history.routes(store),
                    search.routes(store, engine), belief_map.routes(store, engine),
                    annotators.routes(store, engine), enrichment.routes(store),
-                   pipeline.routes(store),
+                   pipeline.routes(store), playback.routes(store, engine),
                    live.routes(store)):
         app.include_router(router)
 

@@ -1,0 +1,85 @@
+"""The playback page: a robot's scenes as a sequence (queries/playback.py; GET /api/playback is
+its JSON twin). It shows one scene, its image or its clusters' crops, beside the belief of its
+map at the scene's time, under a timeline: a time slider, steps to the first, previous, next
+and last scene, to the next scene where an annotator failed, and to the next event of an
+object the user follows. The steps are plain links, worked out when the page is made, so the
+page plays without JavaScript, one page at a time; static/playback.js steps without reloading
+and plays the sequence on.
+"""
+
+from __future__ import annotations
+
+from bson import ObjectId
+from fastapi import APIRouter, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse
+from pymongo import DESCENDING
+
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.store import MemoryStore
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.ops import QueryError
+
+from .belief_map import SECOND, drawn_belief, moment_of
+from .html import SCRIPT_CSP, PageError, page, parse_id
+
+
+def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
+    router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
+
+    @router.get("/playback")
+    async def playback_page(request: Request, robot: str = "", t: str = "", at: str = "",
+                            object: str = "") -> HTMLResponse:
+        moment = moment_of(t, at)
+        followed = parse_id(object, "object") if object.strip() else None
+        robots = await run_in_threadpool(_robots, store)
+        if not robots:
+            return page(request, "playback.html", {"frame": None}, policy=SCRIPT_CSP)
+        chosen = robot or await run_in_threadpool(_newest_robot, store)
+        if chosen not in robots:
+            raise PageError(404, f"no scenes of a robot named {chosen!r}")
+
+        def load() -> dict:
+            frame = engine.playback(robot=chosen, t=moment)
+            scene = store.get_scene(frame.scene_id)
+            shown = [c.object_id for c in scene.clusters if c.object_id]
+            return {
+                "frame": frame, "scene": scene, "robots": robots, "followed": followed,
+                "names": _names(store, [*shown, followed]),
+                "failure": _step(engine, frame, "failure"),
+                "event": followed and _step(engine, frame, "event", followed),
+                "belief": drawn_belief(store, engine, frame.map, frame.time),
+                "second": SECOND,
+            }
+
+        try:
+            context = await run_in_threadpool(load)
+        except QueryError as error:
+            raise PageError(503, str(error)) from None
+        return page(request, "playback.html", context, policy=SCRIPT_CSP)
+
+    return router
+
+
+def _step(engine: QueryEngine, frame, step: str, followed: ObjectId | None = None) -> int | None:
+    """The time of the scene a step from this frame goes to, or None if there is none."""
+    try:
+        return engine.playback(robot=frame.robot, t=frame.time, step=step, object=followed).time
+    except NotFound:
+        return None
+
+
+def _robots(store: MemoryStore) -> list[str]:
+    return sorted(store.scenes.distinct("robot"))
+
+
+def _newest_robot(store: MemoryStore) -> str:
+    return store.scenes.find_one({}, {"robot": 1}, sort=[("timestamp", DESCENDING)])["robot"]
+
+
+def _names(store: MemoryStore, ids: list) -> dict:
+    """The objects' names by id, in the order given (None: no name), for the follow list."""
+    found = {o["_id"]: o.get("name") for o in store.db[OBJECTS].find(
+        {"_id": {"$in": [i for i in ids if i]}}, {"name": 1})}
+    return {i: found[i] for i in ids if i in found}

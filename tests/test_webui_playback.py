@@ -11,7 +11,8 @@ from bson import ObjectId
 from playwright.sync_api import Page, expect
 
 from percept_memory.demo import kitchen_week
-from percept_memory.memory.types import LogLine
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.types import LogLine, Scene
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.webui import render
 
@@ -22,7 +23,7 @@ from .test_webui import shot
 # test_webui's browser, page, server and client, here on this module's store (filled below)
 browser, page, url, client = test_webui.browser, test_webui.page, test_webui.url, test_webui.client
 
-ROBOT = kitchen_week.ROBOT
+ROBOT, MAP = kitchen_week.ROBOT, kitchen_week.MAP
 FAILING = (7, 19)  # scenes of the day where an annotator fails
 
 
@@ -37,8 +38,15 @@ def week():
 
 
 @pytest.fixture(scope="module")
-def filled(store, week):
-    ingest_consolidated(store, week.scenes)
+def lab(week) -> list[Scene]:
+    """Two scenes the robot saw in another map, the day before the kitchen's."""
+    start = min(s.timestamp for s in week.scenes) - 86_400 * 10**9
+    return [Scene(timestamp=start + i * 60 * 10**9, robot=ROBOT, map="lab") for i in range(2)]
+
+
+@pytest.fixture(scope="module")
+def filled(store, week, lab):
+    ingest_consolidated(store, [*lab, *week.scenes])
     return store
 
 
@@ -69,18 +77,30 @@ def followed(store, week):
 def test_each_step_goes_to_the_scene_it_names(filled, times):
     engine = QueryEngine(filled)
     k = len(times) // 2
-    frame = engine.playback(robot=ROBOT, t=times[k])
+    frame = engine.playback(robot=ROBOT, map=MAP, t=times[k])
     assert (frame.time, frame.first, frame.last) == (times[k], times[0], times[-1])
     assert (frame.previous, frame.next) == (times[k - 1], times[k + 1])
     between = (times[k] + times[k + 1]) // 2
     assert engine.playback(robot=ROBOT, t=between).time == times[k]
     assert engine.playback(robot=ROBOT, t=between, step="next").time == times[k + 1]
     assert engine.playback(robot=ROBOT, t=between, step="previous").time == times[k]
-    assert engine.playback(robot=ROBOT, t=between, step="first").time == times[0]
+    assert engine.playback(robot=ROBOT, map=MAP, t=between, step="first").time == times[0]
     assert engine.playback(robot=ROBOT, step="last").time == times[-1]
-    assert engine.playback(robot=ROBOT, t=0).time == times[0]  # before the first: the first
+    assert engine.playback(robot=ROBOT, map=MAP, t=0).time == times[0]  # before the first
     last = engine.playback(robot=ROBOT)
     assert last.time == times[-1] and last.next is None and last.previous == times[-2]
+
+
+def test_a_map_narrows_the_sequence_to_its_scenes(filled, times, lab):
+    engine = QueryEngine(filled)
+    everywhere = engine.playback(robot=ROBOT, t=times[0])
+    assert (everywhere.first, everywhere.previous) == (lab[0].timestamp, lab[-1].timestamp)
+    kitchen = engine.playback(robot=ROBOT, map=MAP, t=times[0])
+    assert (kitchen.first, kitchen.previous) == (times[0], None)
+    assert engine.playback(robot=ROBOT, map="lab", t=times[5]).time == lab[-1].timestamp
+    assert engine.playback(robot=ROBOT, t=0).time == lab[0].timestamp
+    with pytest.raises(NotFound):
+        engine.playback(robot=ROBOT, map="nowhere")
 
 
 def test_next_failure_and_next_event(filled, week, times):
@@ -129,6 +149,8 @@ def test_the_api_answers_a_step_by_get_and_post(client, times):
     ({"robot": ROBOT, "step": "event", "object": "zz"}, 422),
     ({"robot": ROBOT, "colour": "red"}, 422),
     ({"robot": "nobody"}, 404),
+    ({"robot": ROBOT, "map": "nowhere"}, 404),
+    ({"robot": ROBOT, "map": ""}, 422),
     ({"robot": ROBOT, "step": "next", "t": str(2**63 - 1)}, 404),
     ({"robot": ROBOT, "step": "event", "object": str(ObjectId())}, 404),
 ])
@@ -147,7 +169,7 @@ def test_no_failure_after_the_last_is_a_404_naming_it(client, week):
 
 
 @pytest.mark.parametrize("query", ["robot=nobody", "t=yesterday", "at=soon", "object=zz",
-                                   "t=5&at=5"])
+                                   "t=5&at=5", "map=nowhere"])
 def test_bad_parameters_of_the_page_get_a_page_naming_the_problem(client, query):
     answer = client.get(f"/playback?{query}")
     assert answer.status_code in (404, 422) and 'role="alert"' in answer.text
@@ -208,6 +230,17 @@ def test_next_failure_and_next_event_jump_to_their_scenes(page, url, store, week
         page.get_by_role("link", name=f"next event of {name}").click()
         expect(page.locator("#frame")).to_have_attribute("data-time", str(after))
     expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&t={events[3]}&object={object_id}")
+
+
+def test_a_chosen_map_stays_chosen(page, url, times):
+    page.goto(f"{url}/playback?robot={ROBOT}&t={times[0]}")
+    expect(page.get_by_role("link", name="previous", exact=True)).to_have_count(1)  # the lab
+    page.locator("select[name=map]").select_option(MAP)
+    expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&map={MAP}&at={times[0] // 10**9 + 1}")
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(times[0]))
+    expect(page.locator("nav.steps .off", has_text="previous")).to_have_count(1)
+    page.get_by_role("link", name="next", exact=True).click()
+    expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&t={times[1]}&map={MAP}")
 
 
 def test_without_javascript_the_steps_are_links(browser, url, times):

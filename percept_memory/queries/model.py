@@ -417,6 +417,8 @@ class Playback(Strict):
     """A robot's scenes as a sequence: the scene at a moment, or a step from it."""
 
     robot: Name
+    map: Name | None = Field(default=None, description=(
+        "only the robot's scenes in this map (default: in every map)"))
     t: Time | None = Field(default=None, description="the moment (default: now)")
     step: Step = Field(default="at", description=(
         "at: the scene at or before t (the first, before it); first, previous, next, last; "

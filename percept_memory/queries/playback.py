@@ -1,7 +1,8 @@
-"""A robot's scenes as a sequence to play back (issue 17, after FiftyOne's dynamic groups and
-Foxglove's timeline): the scene shown at a moment, and the steps a timeline takes from it.
-Every step is one index seek: on scenes by robot and time (a partial index holds only the
-scenes where an annotator failed), or on events by object and time.
+"""A robot's scenes (in one map, or in all) as a sequence to play back (issue 17, after
+FiftyOne's dynamic groups and Foxglove's timeline): the scene shown at a moment, and the steps
+a timeline takes from it. Every step is an index seek: on scenes by robot (or map) and time
+(a partial index holds only the scenes where an annotator failed), or on events by object and
+time.
 """
 
 from __future__ import annotations
@@ -25,16 +26,21 @@ def playback(q: Playback) -> Plan[Frame]:
     """The robot's scene at the moment t, or the step from t the query asks for, with the
     times of the robot's first, previous, next and last scenes."""
     t = NOW if q.t is None else q.t
+    sequence = {"robot": q.robot, **({} if q.map is None else {"map": q.map})}
     if q.step == "event":
-        found = yield from _event_scene(q, t)
+        found = yield from _event_scene(q, sequence, t)
     else:
         condition, order, wanted = _step(q.step, t)
-        found = yield from _scene({"robot": q.robot, **condition}, order, FRAME_FIELDS)
-        if found is None and q.step == "at":  # before the robot's first scene: that one
-            found = yield from _scene({"robot": q.robot}, FORWARD, FRAME_FIELDS)
+        found = yield from _scene({**sequence, **condition}, order, FRAME_FIELDS)
+        if found is None and q.step == "at":  # before the sequence's first scene: that one
+            found = yield from _scene(sequence, FORWARD, FRAME_FIELDS)
         if found is None:
-            raise NotFound(f"scene of the robot {q.robot!r}", wanted)
-    return (yield from _frame(found))
+            raise NotFound(_named(q), wanted)
+    return (yield from _frame(found, sequence))
+
+
+def _named(q: Playback) -> str:
+    return f"scene of the robot {q.robot!r}" + ("" if q.map is None else f" in map {q.map!r}")
 
 
 def _step(step: str, t: int) -> tuple[dict, tuple, str]:
@@ -55,25 +61,24 @@ def _scene(condition: dict, order, fields: dict) -> Plan[dict | None]:
     return found[0] if found else None
 
 
-def _event_scene(q: Playback, t: int) -> Plan[dict]:
-    """The robot's first scene after t with an event of the object (seen, moved, found
+def _event_scene(q: Playback, sequence: dict, t: int) -> Plan[dict]:
+    """The sequence's first scene after t with an event of the object (seen, moved, found
     hidden or gone), among the object's next EVENTS_LOOKED_AT events."""
     events = yield Find(EVENTS, {"object_id": q.object, "time": {"$gt": t}}, {"scene_id": 1},
                         (("object_id", 1), ("time", 1)), EVENTS_LOOKED_AT)
-    found = yield Find(SCENES, {"_id": {"$in": [e["scene_id"] for e in events]},
-                                "robot": q.robot}, FRAME_FIELDS, (("timestamp", 1),), 1)
+    found = yield Find(SCENES, {"_id": {"$in": [e["scene_id"] for e in events]}, **sequence},
+                       FRAME_FIELDS, (("timestamp", 1),), 1)
     if not found:
-        raise NotFound(f"scene of the robot {q.robot!r}", f"after {t} with an event of the "
-                                                          f"object {q.object}")
+        raise NotFound(_named(q), f"after {t} with an event of the object {q.object}")
     return found[0]
 
 
-def _frame(scene: dict) -> Plan[Frame]:
+def _frame(scene: dict, sequence: dict) -> Plan[Frame]:
     robot, t = scene["robot"], scene["timestamp"]
     times = []
     for step in ("first", "last", "previous", "next"):
         condition, order, _ = _step(step, t)
-        found = yield from _scene({"robot": robot, **condition}, order, {"timestamp": 1})
+        found = yield from _scene({**sequence, **condition}, order, {"timestamp": 1})
         times.append(found and found["timestamp"])
     first, last, previous, after = times
     log = scene.get("log", [])

@@ -189,7 +189,7 @@ class Frame(BaseModel):
     time: Nanoseconds
     clusters: int
     failed: list[str] = []  # the annotators with an error line in the scene's log
-    first: Nanoseconds  # the robot's first scene
+    first: Nanoseconds  # the sequence's first scene (the robot's, in the map if one is given)
     last: Nanoseconds  # and its last
-    previous: Nanoseconds | None = None  # the robot's scene before this one
+    previous: Nanoseconds | None = None  # the sequence's scene before this one
     next: Nanoseconds | None = None  # and after it

@@ -1,10 +1,10 @@
-"""The playback page: a robot's scenes as a sequence (queries/playback.py; GET /api/playback is
-its JSON twin). It shows one scene, its image or its clusters' crops, beside the belief of its
-map at the scene's time, under a timeline: a time slider, steps to the first, previous, next
-and last scene, to the next scene where an annotator failed, and to the next event of an
-object the user follows. The steps are plain links, worked out when the page is made, so the
-page plays without JavaScript, one page at a time; static/playback.js steps without reloading
-and plays the sequence on.
+"""The playback page: a robot's scenes, in one map or in all, as a sequence
+(queries/playback.py; GET /api/playback is its JSON twin). It shows one scene, its image or its
+clusters' crops, beside the belief of its map at the scene's time, under a timeline: a time
+slider, steps to the first, previous, next and last scene, to the next scene where an
+annotator failed, and to the next event of an object the user follows. The steps are plain
+links, worked out when the page is made, so the page plays without JavaScript, one page at a
+time; static/playback.js steps without reloading and plays the sequence on.
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
     @router.get("/playback")
-    async def playback_page(request: Request, robot: str = "", t: str = "", at: str = "",
-                            object: str = "") -> HTMLResponse:
+    async def playback_page(request: Request, robot: str = "", map: str = "", t: str = "",
+                            at: str = "", object: str = "") -> HTMLResponse:
         moment = moment_of(t, at)
         followed = parse_id(object, "object") if object.strip() else None
         robots = await run_in_threadpool(_robots, store)
@@ -39,16 +39,22 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         chosen = robot or await run_in_threadpool(_newest_robot, store)
         if chosen not in robots:
             raise PageError(404, f"no scenes of a robot named {chosen!r}")
+        maps = await run_in_threadpool(store.scenes.distinct, "map", {"robot": chosen})
+        if map and map not in maps:
+            raise PageError(404, f"no scenes of {chosen!r} in a map named {map!r}")
+        sequence = {"robot": chosen, "map": map or None}
 
         def load() -> dict:
-            frame = engine.playback(robot=chosen, t=moment)
+            frame = engine.playback(**sequence, t=moment)
             scene = store.get_scene(frame.scene_id)
             shown = [c.object_id for c in scene.clusters if c.object_id]
             return {
-                "frame": frame, "scene": scene, "robots": robots, "followed": followed,
+                "frame": frame, "scene": scene, "robots": robots, "maps": sorted(maps),
+                "sequence": sequence, "followed": followed,
+                "kept": {k: v for k, v in (("map", map), ("object", followed)) if v},
                 "names": _names(store, [*shown, followed]),
-                "failure": _step(engine, frame, "failure"),
-                "event": followed and _step(engine, frame, "event", followed),
+                "failure": _step(engine, sequence, frame, "failure"),
+                "event": followed and _step(engine, sequence, frame, "event", followed),
                 "belief": drawn_belief(store, engine, frame.map, frame.time),
                 "second": SECOND,
             }
@@ -62,10 +68,11 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     return router
 
 
-def _step(engine: QueryEngine, frame, step: str, followed: ObjectId | None = None) -> int | None:
+def _step(engine: QueryEngine, sequence: dict, frame, step: str,
+          followed: ObjectId | None = None) -> int | None:
     """The time of the scene a step from this frame goes to, or None if there is none."""
     try:
-        return engine.playback(robot=frame.robot, t=frame.time, step=step, object=followed).time
+        return engine.playback(**sequence, t=frame.time, step=step, object=followed).time
     except NotFound:
         return None
 

@@ -54,8 +54,11 @@ main.addEventListener("submit", (event) => {
   load(`/playback?${new URLSearchParams(new FormData(form))}`);
 });
 
-main.addEventListener("change", (event) => {  // the slider let go, or another robot chosen
-  if (event.target.form?.matches("form.timeline")) event.target.form.requestSubmit();
+main.addEventListener("change", (event) => {  // the slider let go, another robot or map chosen
+  const form = event.target.form;
+  if (!form?.matches("form.timeline")) return;
+  if (event.target.name === "robot") form.elements.map.value = "";  // its maps are others
+  form.requestSubmit();
 });
 
 attach();

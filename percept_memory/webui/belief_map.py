@@ -119,7 +119,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     async def map_page(request: Request, map: str = "", t: str = "", at: str = "",
                        view: str = "") -> HTMLResponse:
         in_3d = scene3d.wanted(view)
-        maps = await run_in_threadpool(_maps, store)
+        maps = await run_in_threadpool(map_names, store)
         if not maps:
             return page(request, "map.html", {"span": None})
         chosen = map or await run_in_threadpool(_newest_map, store)
@@ -175,7 +175,7 @@ def moment_of(t: str, at: str) -> int | None:
         raise PageError(422, f"t: {error.errors()[0]['msg']}") from None
 
 
-def _maps(store: MemoryStore) -> list[str]:
+def map_names(store: MemoryStore) -> list[str]:
     """The maps with a belief, by name."""
     return sorted(store.db[MAPS].distinct("_id"))
 

@@ -21,7 +21,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.ops import QueryError
 
-from .belief_map import SECOND, drawn_belief, moment_of
+from .belief_map import SECOND, drawn_belief, map_names, moment_of
 from .html import SCRIPT_CSP, PageError, page, parse_id
 
 
@@ -39,9 +39,6 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         chosen = robot or await run_in_threadpool(_newest_robot, store)
         if chosen not in robots:
             raise PageError(404, f"no scenes of a robot named {chosen!r}")
-        maps = await run_in_threadpool(store.scenes.distinct, "map", {"robot": chosen})
-        if map and map not in maps:
-            raise PageError(404, f"no scenes of {chosen!r} in a map named {map!r}")
         sequence = {"robot": chosen, "map": map or None}
 
         def load() -> dict:
@@ -49,7 +46,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             scene = store.get_scene(frame.scene_id)
             shown = [c.object_id for c in scene.clusters if c.object_id]
             return {
-                "frame": frame, "scene": scene, "robots": robots, "maps": sorted(maps),
+                "frame": frame, "scene": scene, "robots": robots,
+                "maps": sorted({*map_names(store), frame.map}),
                 "sequence": sequence, "followed": followed,
                 "kept": {k: v for k, v in (("map", map), ("object", followed)) if v},
                 "names": _names(store, [*shown, followed]),
@@ -61,6 +59,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
 
         try:
             context = await run_in_threadpool(load)
+        except NotFound as error:  # no scenes of the robot in that map
+            raise PageError(404, str(error)) from None
         except QueryError as error:
             raise PageError(503, str(error)) from None
         return page(request, "playback.html", context, policy=SCRIPT_CSP)

@@ -121,7 +121,8 @@ function look() {
     camera.position.copy(apex).add(apex.clone().sub(centre).multiplyScalar(0.25));
   } else {
     const radius = Math.max(bounds.getSize(new THREE.Vector3()).length() / 2, 0.3);
-    camera.position.copy(centre).add(new THREE.Vector3(0, -1.1 * radius, 1.1 * radius));
+    const away = 0.8 * radius / Math.sin(THREE.MathUtils.degToRad(camera.fov / 2));
+    camera.position.copy(centre).add(new THREE.Vector3(0, -1, 1.2).setLength(away));
   }
   controls.target.copy(centre);
   controls.update();

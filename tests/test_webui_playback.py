@@ -169,10 +169,17 @@ def test_no_failure_after_the_last_is_a_404_naming_it(client, week):
 
 
 @pytest.mark.parametrize("query", ["robot=nobody", "t=yesterday", "at=soon", "object=zz",
-                                   "t=5&at=5", "map=nowhere"])
+                                   "t=5&at=5", "map=nowhere", "map=" + "x" * 300])
 def test_bad_parameters_of_the_page_get_a_page_naming_the_problem(client, query):
     answer = client.get(f"/playback?{query}")
     assert answer.status_code in (404, 422) and 'role="alert"' in answer.text
+
+
+def test_no_parameter_value_gives_a_server_error(client):
+    for name in ("robot", "map", "t", "at", "object"):
+        for value in test_webui.NASTY:
+            answer = client.get("/playback", params={name: value})
+            assert answer.status_code < 500, (name, value, answer.text[-500:])
 
 
 # --- in the browser --------------------------------------------------------------------------

@@ -13,13 +13,16 @@ from bson import ObjectId
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
+from pydantic import ValidationError
 from pymongo import DESCENDING
 
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import Playback
 from percept_memory.queries.ops import QueryError
+from percept_memory.queries.results import Frame
 
 from .belief_map import SECOND, drawn_belief, map_names, moment_of
 from .html import SCRIPT_CSP, PageError, page, parse_id
@@ -39,20 +42,25 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         chosen = robot or await run_in_threadpool(_newest_robot, store)
         if chosen not in robots:
             raise PageError(404, f"no scenes of a robot named {chosen!r}")
-        sequence = {"robot": chosen, "map": map or None}
+        try:
+            asked = Playback(robot=chosen, map=map or None, t=moment)
+        except ValidationError as error:
+            raise PageError(422, "the moment asked for is not valid", [
+                f"{'.'.join(str(part) for part in e['loc'])}: {e['msg']}"
+                for e in error.errors()]) from None
 
         def load() -> dict:
-            frame = engine.playback(**sequence, t=moment)
+            frame = engine.playback(asked)
             scene = store.get_scene(frame.scene_id)
             shown = [c.object_id for c in scene.clusters if c.object_id]
             return {
                 "frame": frame, "scene": scene, "robots": robots,
                 "maps": sorted({*map_names(store), frame.map}),
-                "sequence": sequence, "followed": followed,
+                "sequence": asked, "followed": followed,
                 "kept": {k: v for k, v in (("map", map), ("object", followed)) if v},
                 "names": _names(store, [*shown, followed]),
-                "failure": _step(engine, sequence, frame, "failure"),
-                "event": followed and _step(engine, sequence, frame, "event", followed),
+                "failure": _step(engine, asked, frame, "failure"),
+                "event": followed and _step(engine, asked, frame, "event", followed),
                 "belief": drawn_belief(store, engine, frame.map, frame.time),
                 "second": SECOND,
             }
@@ -68,11 +76,12 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     return router
 
 
-def _step(engine: QueryEngine, sequence: dict, frame, step: str,
+def _step(engine: QueryEngine, asked: Playback, frame: Frame, step: str,
           followed: ObjectId | None = None) -> int | None:
     """The time of the scene a step from this frame goes to, or None if there is none."""
     try:
-        return engine.playback(**sequence, t=frame.time, step=step, object=followed).time
+        return engine.playback(asked.model_copy(
+            update={"t": frame.time, "step": step, "object": followed})).time
     except NotFound:
         return None
 

@@ -207,6 +207,18 @@ def test_steps_and_the_slider_change_the_scene_and_the_belief(page, url, times):
     expect(page.locator("nav.steps a[rel=next]")).to_have_count(0)
 
 
+def test_the_arrow_keys_step_and_a_scene_page_leads_here(page, url, week, times):
+    scene = next(s for s in week.scenes if s.timestamp == times[4])
+    page.goto(f"{url}/scenes/{scene.id}")
+    page.get_by_role("link", name="play from here").click()
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(times[4]))
+    page.keyboard.press("ArrowRight")
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(times[5]))
+    page.keyboard.press("ArrowLeft")
+    page.keyboard.press("ArrowLeft")
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(times[3]))
+
+
 def test_play_advances_until_paused(page, url, times):
     page.goto(f"{url}/playback?robot={ROBOT}&t={times[0]}")
     page.get_by_role("button", name="Play").click()

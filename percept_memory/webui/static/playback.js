@@ -1,7 +1,7 @@
 // The playback page (webui/playback.py) without reloads: steps, the time slider and the
 // follow form fetch the page they lead to and put its content in place of this one's; Play
-// follows the "next" step every PERIOD ms until the last scene. The page's content arrives
-// rendered and escaped by the server: it is parsed, never run.
+// follows the "next" step every PERIOD ms until the last scene; the arrow keys step. The
+// page's content arrives rendered and escaped by the server: it is parsed, never run.
 const PERIOD = 1000;
 const main = document.querySelector("main");
 const play = document.createElement("button");
@@ -59,6 +59,18 @@ main.addEventListener("change", (event) => {  // the slider let go, another robo
   if (!form?.matches("form.timeline")) return;
   if (event.target.name === "robot") form.elements.map.value = "";  // its maps are others
   form.requestSubmit();
+});
+
+let steps = Promise.resolve();  // the arrow keys' steps, each from where the one before led
+
+document.addEventListener("keydown", (event) => {  // left and right arrows step, as in players
+  const rel = { ArrowLeft: "prev", ArrowRight: "next" }[event.key];
+  if (!rel || event.target.closest("input, select, textarea")) return;
+  event.preventDefault();
+  steps = steps.then(() => {
+    const link = main.querySelector(`nav.steps a[rel=${rel}]`);
+    return link && load(link.href);
+  }).catch(() => {});
 });
 
 attach();

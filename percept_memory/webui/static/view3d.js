@@ -7,7 +7,7 @@ import * as THREE from "./three/three.module.js";
 import { OrbitControls } from "./three/OrbitControls.js";
 
 const COLOURS = { box: 0xff3b30, region: 0x8a939e, frustum: 0x0a5cc2, present: 0x0a5cc2,
-                  hidden: 0x8a939e, label: "#1d232b" };
+                  hidden: 0x8a939e, label: "#1d232b", boxLabel: "#c0261d", regionLabel: "#5b6470" };
 const canvas = document.querySelector("canvas.view3d");
 const data = JSON.parse(document.getElementById("view3d-data").textContent);
 
@@ -31,11 +31,6 @@ function resize() {
   camera.aspect = width / height;
   camera.updateProjectionMatrix();
   draw();
-}
-
-function lines(pairs, colour) {
-  const geometry = new THREE.BufferGeometry().setFromPoints(pairs.map((p) => new THREE.Vector3(...p)));
-  return new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ color: colour }));
 }
 
 function label(text, at, colour = COLOURS.label) {
@@ -74,13 +69,17 @@ function box({ low, high, label: text, region }) {
     floor.position.set((low[0] + high[0]) / 2, (low[1] + high[1]) / 2, low[2]);
     group.add(floor);
   }
-  group.add(label(text, [low[0], low[1], high[2]], region ? "#5b6470" : "#c0261d"));
+  const colour = region ? COLOURS.regionLabel : COLOURS.boxLabel;
+  group.add(label(text, [low[0], low[1], high[2]], colour));
   return group;
 }
 
 function frustum([apex, ...corners]) {
-  const pairs = corners.flatMap((corner, i) => [apex, corner, corner, corners[(i + 1) % 4]]);
-  return lines(pairs, COLOURS.frustum);
+  // From the camera to each far corner, and round the far end.
+  const ends = corners.flatMap((corner, i) => [apex, corner, corner, corners[(i + 1) % 4]]);
+  const geometry = new THREE.BufferGeometry()
+    .setFromPoints(ends.map((p) => new THREE.Vector3(...p)));
+  return new THREE.LineSegments(geometry, new THREE.LineBasicMaterial({ color: COLOURS.frustum }));
 }
 
 function dot({ position, label: text, state }) {
@@ -100,8 +99,10 @@ async function cloud(url) {
   const bytes = await answer.arrayBuffer();
   const count = bytes.byteLength / 15;  // 3 float32 and 3 uint8 per point
   const geometry = new THREE.BufferGeometry();
-  geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(bytes, 0, count * 3), 3));
-  geometry.setAttribute("color", new THREE.BufferAttribute(new Uint8Array(bytes, count * 12), 3, true));
+  const positions = new Float32Array(bytes, 0, count * 3);
+  const colours = new Uint8Array(bytes, count * 12);  // 0-255, normalised to 0-1 below
+  geometry.setAttribute("position", new THREE.BufferAttribute(positions, 3));
+  geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3, true));
   canvas.dataset.points = String(count);
   return new THREE.Points(geometry, new THREE.PointsMaterial({
     size: 2, sizeAttenuation: false, vertexColors: true }));

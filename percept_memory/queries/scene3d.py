@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel
 
-from percept_memory.memory.types import Geometry, PointCluster, Scene, Vec3
+from percept_memory.memory.types import Cluster, Geometry, PointCluster, Scene, Vec3
 from percept_memory.memory.view import MAX_RANGE
 
 MAX_POINTS = 200_000
@@ -38,10 +38,11 @@ class Shapes(BaseModel):
 
 
 def shapes(scene: Scene) -> Shapes:
-    boxes = [Box(number=number, low=tuple(low), high=tuple(high))
-             for number, cluster in enumerate(scene.clusters, 1)
-             if (extent := _extent(scene, cluster)) is not None
-             for low, high in [extent]]
+    boxes = []
+    for number, cluster in enumerate(scene.clusters, 1):
+        extent = _extent(scene, cluster)
+        if extent is not None:
+            boxes.append(Box(number=number, low=tuple(extent[0]), high=tuple(extent[1])))
     return Shapes(frame=scene.frame, points=len(_cloud(scene)[0]), boxes=boxes,
                   frustum=_frustum(scene, boxes))
 
@@ -96,7 +97,7 @@ def _depth(scene: Scene) -> np.ndarray | None:
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
 
 
-def _extent(scene: Scene, cluster) -> tuple[np.ndarray, np.ndarray] | None:
+def _extent(scene: Scene, cluster: Cluster) -> tuple[np.ndarray, np.ndarray] | None:
     """A cluster's box: around its points, else its size around its position, else a small
     marker at its position; None when it has no place."""
     points = cluster.hypothesis_of(PointCluster)
@@ -128,7 +129,7 @@ def _frustum(scene: Scene, boxes: list[Box]) -> list[Vec3] | None:
     pose = scene.camera_pose.matrix()
     to_camera = np.linalg.inv(pose)
     centres = np.array([np.add(b.low, b.high) / 2 for b in boxes]).reshape(-1, 3)
-    depths = centres @ to_camera[:3, :3].T[:, 2] + to_camera[2, 3]
+    depths = centres @ to_camera[2, :3] + to_camera[2, 3]  # along the optical axis
     far = float(np.clip(depths.max(initial=0) + 0.1, NEAREST, MAX_RANGE)) if len(boxes) else FAR
     width, height = scene.camera.width, scene.camera.height
     corners = scene.camera.back_project(np.array([0, width, width, 0]),

@@ -15,6 +15,7 @@ from playwright.sync_api import Page, expect
 
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.rgbd import read_samples
+from percept_memory.memory.types import PointCluster
 from percept_memory.queries import scene3d
 
 from . import test_webui
@@ -108,6 +109,29 @@ def test_the_map_in_3d_follows_the_chosen_time(page, url, week):
     expect(page).to_have_url(
         f"{url}/map?map={kitchen_week.MAP}&t={week.scenes[k].timestamp}&view=3d")
     expect(page.locator(DRAWN)).to_have_count(1)
+
+
+# --- the shapes -------------------------------------------------------------------------------
+
+def test_the_frustum_is_the_camera_and_its_image_corners(sample):
+    apex, *corners = np.array(scene3d.shapes(sample).frustum)
+    assert np.allclose(apex, sample.camera_pose.translation)
+    to_camera = np.linalg.inv(sample.camera_pose.matrix())
+    x, y, z = (np.array(corners) @ to_camera[:3, :3].T + to_camera[:3, 3]).T
+    (fx, fy), (cx, cy) = sample.camera.focal, sample.camera.principal_point
+    width, height = sample.camera.width, sample.camera.height
+    assert np.allclose(fx * x / z + cx, [0, width, width, 0])
+    assert np.allclose(fy * y / z + cy, [0, 0, height, height])
+
+
+def test_the_depth_image_gives_the_points_the_importer_found(sample):
+    """Every cluster's points (the importer's, from the same depth) are among the scene's."""
+    from scipy.spatial import cKDTree
+
+    whole = cKDTree(scene3d.points(sample, max_points=10**7)[0])
+    for cluster in sample.clusters:
+        own = cluster.hypothesis_of(PointCluster).points.xyz()
+        assert whole.query(own)[0].max() < 1e-5
 
 
 # --- plain HTTP -------------------------------------------------------------------------------

@@ -262,6 +262,20 @@ def test_a_chosen_map_stays_chosen(page, url, times):
     expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&t={times[1]}&map={MAP}")
 
 
+def test_the_timeline_marks_failures_and_events_and_leads_to_them(page, url, store, week,
+                                                                  times):
+    first, second = failure_times(week)
+    object_id, events = followed(store, week)
+    page.goto(f"{url}/playback?robot={ROBOT}&map={MAP}&t={times[0]}&object={object_id}")
+    failures, marked = page.locator("a.mark.failure"), page.locator("a.mark.event")
+    expect(failures).to_have_count(2)
+    expect(marked).to_have_count(len(events))
+    failures.nth(1).locator("rect").click()
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(second))
+    marked.last.locator("rect").click()  # drawn last, so on top of any it overlaps
+    expect(page.locator("#frame")).to_have_attribute("data-time", str(events[-1]))
+
+
 def test_without_javascript_the_steps_are_links(browser, url, times):
     context = browser.new_context(java_script_enabled=False)
     tab = context.new_page()

@@ -9,6 +9,8 @@ time; static/playback.js steps without reloading and plays the sequence on.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 from bson import ObjectId
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
@@ -17,7 +19,7 @@ from pydantic import ValidationError
 from pymongo import DESCENDING
 
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import Playback
@@ -26,6 +28,18 @@ from percept_memory.queries.results import Frame
 
 from .belief_map import SECOND, drawn_belief, map_names, moment_of
 from .html import SCRIPT_CSP, PageError, page, parse_id
+
+MARKS = 500  # of each kind on the timeline: the sequence's first failures, the object's events
+STRIP = 1000  # the timeline's width, in its drawing's units
+
+
+@dataclass
+class Mark:
+    """A failure, or an event of the followed object, at x along the sequence's time."""
+
+    kind: str  # failure | event
+    t: int
+    x: float
 
 
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
@@ -62,6 +76,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
                 "failure": _step(engine, asked, frame, "failure"),
                 "event": followed and _step(engine, asked, frame, "event", followed),
                 "belief": drawn_belief(store, engine, frame.map, frame.time),
+                "marks": _marks(store, asked, frame, followed), "strip": STRIP,
                 "second": SECOND,
             }
 
@@ -84,6 +99,22 @@ def _step(engine: QueryEngine, asked: Playback, frame: Frame, step: str,
             update={"t": frame.time, "step": step, "object": followed})).time
     except NotFound:
         return None
+
+
+def _marks(store: MemoryStore, asked: Playback, frame: Frame,
+           followed: ObjectId | None) -> list[Mark]:
+    """Where the sequence's failures (by the partial index of failing scenes) and the followed
+    object's events in it are along its time, for the timeline to show and lead to."""
+    sequence = {"robot": asked.robot, **({"map": asked.map} if asked.map else {})}
+    found = [("failure", d["timestamp"]) for d in store.scenes.find(
+        {**sequence, "log.level": "error"}, {"timestamp": 1},
+        sort=[("robot", 1), ("timestamp", 1)], limit=MARKS)]
+    if followed:
+        found += [("event", e["time"]) for e in store.db[EVENTS].find(
+            {"object_id": followed, **sequence}, {"time": 1},
+            sort=[("object_id", 1), ("time", 1)], limit=MARKS)]
+    span = max(frame.last - frame.first, 1)
+    return [Mark(kind, t, round((t - frame.first) / span * STRIP, 1)) for kind, t in found]
 
 
 def _robots(store: MemoryStore) -> list[str]:

@@ -1,7 +1,7 @@
-// The playback page (webui/playback.py) without reloads: steps, the time slider and the
-// follow form fetch the page they lead to and put its content in place of this one's; Play
-// follows the "next" step every PERIOD ms until the last scene; the arrow keys step. The
-// page's content arrives rendered and escaped by the server: it is parsed, never run.
+// The playback page (webui/playback.py) without reloads: steps, marks on the timeline, the
+// time slider and the follow form fetch the page they lead to and put its content in place
+// of this one's; Play follows the "next" step every PERIOD ms until the last scene; the arrow
+// keys step. The page's content arrives rendered and escaped by the server: parsed, never run.
 const PERIOD = 1000;
 const main = document.querySelector("main");
 const play = document.createElement("button");
@@ -36,15 +36,15 @@ play.addEventListener("click", async () => {
     if (!playing || run !== mine) break;
     const next = main.querySelector("nav.steps a[rel=next]");
     if (!next) { playing = false; attach(); break; }
-    await load(next.href);
+    await load(next.getAttribute("href"));
   }
 });
 
-main.addEventListener("click", (event) => {
-  const link = event.target.closest("nav.steps a");
+main.addEventListener("click", (event) => {  // a step, or a mark on the timeline
+  const link = event.target.closest("nav.steps a, .marks a");
   if (!link || event.ctrlKey || event.metaKey || event.shiftKey) return;
   event.preventDefault();
-  load(link.href);
+  load(link.getAttribute("href"));  // (an SVG link's href is no string)
 });
 
 main.addEventListener("submit", (event) => {
@@ -69,7 +69,7 @@ document.addEventListener("keydown", (event) => {  // left and right arrows step
   event.preventDefault();
   steps = steps.then(() => {
     const link = main.querySelector(`nav.steps a[rel=${rel}]`);
-    return link && load(link.href);
+    return link && load(link.getAttribute("href"));
   }).catch(() => {});
 });
 

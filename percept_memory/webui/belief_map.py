@@ -89,7 +89,7 @@ class DrawnObject:
 @dataclass
 class DrawnBelief:
     """The objects believed in a map at a moment, drawn on its floor plan (macros.html:
-    believed_objects); those without a position listed apart."""
+    belief_figure); those without a position listed apart."""
 
     view: Projection
     regions: list[DrawnRegion]

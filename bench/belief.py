@@ -38,10 +38,14 @@ Ground truth and scoring, as bench/identity.py's docstring says (its Run and Sco
 explanations of new clusters (stay, move, newview, appear; figure 6.6) and of the objects
 known before the scene (newview, move, persist, disappear, stay; figure 6.7) in percent of
 each truth row; a nudge counts as a move whatever its size. Beyond it:
+- ground truth as bench/identity.py's, but an object moved and turned while unseen is only
+  "appear" when the side it shows now was never observed: objects here have two sides, and a
+  memory that learnt both can recognise either (identity.py's "change" is a new random colour);
 - strict association accuracy: an observation is right when it gets the object id its true
-  object's previous observation got, or a new id when its true object was never seen (moved
-  and turned while unseen still wants the old id: identity.py's looser one is reported too);
-- object ids per true object: object ids the memory made / real objects it observed;
+  object's previous observation got, or a new id when its true object was never seen or is
+  unrecognisable as above (identity.py's looser one is reported too);
+- object ids per true object: object ids the memory made / real objects it observed; and
+  objects at the end per true object (ids found to be one object remembered twice merge);
 - where-is: for the sampled objects on a table that were observed before, whether the answer
   names the right table (a "disappeared" object is wrong; also given for those still on the
   table they were last seen on, which a memory could know), the position error (2D), and for
@@ -259,6 +263,8 @@ class OverHttp:
         self.clock = 1_735_689_600 * 10**9
         self.created: dict[Any, Any] = {}
         self.last_ms = 0.0
+        self.a_cluster_of: dict[Any, Any] = {}  # object id -> one of its clusters
+        self.merged: list[tuple[Any, Any]] = []  # (twin, kept) since the last look
 
     def start_world(self) -> None:
         pass
@@ -287,7 +293,20 @@ class OverHttp:
         matched = {d.object for d in decisions}
         decisions += [Decision(k.key, k.key, unseen.get(k.key, Explanation.HIDDEN), 1.0)
                       for k in known if k.key not in matched]
+        self.a_cluster_of.update((e["object_id"], e["cluster_id"]) for e in of_cluster.values())
+        self.follow_merges([k.key for k in known])
         return decisions
+
+    def follow_merges(self, keys: list) -> None:
+        """Objects the memory found it remembered twice are merged into one (consolidation
+        .py): a known id gone from `objects` now lives on as its clusters' object."""
+        db = self.server.db
+        alive = set(db["objects"].distinct("_id", {"_id": {"$in": keys}}))
+        for twin in keys:
+            if twin not in alive and twin in self.a_cluster_of:
+                kept = db["clusters"].find_one({"_id": ObjectId(self.a_cluster_of.pop(twin))},
+                                               {"object_id": 1})["object_id"]
+                self.merged.append((twin, kept))
 
     def object_of(self, decision: Decision) -> Any:
         return decision.object if decision.object is not None else self.created.pop(
@@ -307,6 +326,7 @@ class Extra:
     errors_m: list[float] = field(default_factory=list)
     timings: list[tuple[int, float]] = field(default_factory=list)  # objects in memory, ms
     object_ids: int = 0
+    objects_at_end: int = 0  # the map's objects once done (twins found merged)
     true_objects: int = 0
 
     def merge(self, other: Extra) -> None:
@@ -317,6 +337,7 @@ class Extra:
         self.errors_m += other.errors_m
         self.timings += other.timings
         self.object_ids += other.object_ids
+        self.objects_at_end += other.objects_at_end
         self.true_objects += other.true_objects
 
 
@@ -334,6 +355,8 @@ class LongRun(Run):
         self.where_samples = where_samples
         self.last_id: dict[int, Any] = {}  # real object -> id its last observation got
         self.last_place: dict[int, np.ndarray] = {}  # real object -> place when last seen
+        self.last_side: dict[int, int] = {}  # real object -> the side it showed then
+        self.sides_seen: dict[int, set[int]] = defaultdict(set)  # real object -> sides shown
         self.ids: set[Any] = set()  # object ids the memory has made
         self.seen_now: list[int] = []  # real objects observed in this scene (by observe())
 
@@ -358,6 +381,8 @@ class LongRun(Run):
                 if progress:
                     progress.advance(task)
         extra.object_ids = len(self.ids)
+        extra.objects_at_end = self.decider.server.db["objects"].count_documents(
+            {"map": self.decider.map})
         extra.true_objects = len(self.last_id)
 
     def step(self, score: Score, extra: Extra) -> None:
@@ -366,21 +391,46 @@ class LongRun(Run):
         self.seen_now = []
         self.look(int(self.world.rng.integers(TABLES)), score)
         extra.timings.append((in_memory, self.decider.last_ms))
+        self.follow_merges()
         self.score_strict(extra)
         self.where(extra)
 
+    def follow_merges(self) -> None:
+        """A merged twin's observations are now its kept object's: so is the id they got."""
+        for twin, kept in self.decider.merged:
+            self.belief.pop(twin, None)
+            self.gone.pop(twin, None)
+            self.last_id = {o: kept if key == twin else key for o, key in self.last_id.items()}
+        self.decider.merged.clear()
+
+    def known_look(self, o: int) -> bool:
+        """Moved and turned since last seen is still recognisable when the side it shows now
+        was observed before (the memory may know an object's every side)."""
+        return int(self.world.side[o]) in self.sides_seen[o]
+
+    def unrecognisable(self, o: int) -> bool:
+        """Moved and turned, since last seen, to a side never observed: nothing tells it from
+        a new object."""
+        return (o in self.last_id and not np.array_equal(self.last_place[o], self.world.place[o])
+                and self.last_side[o] != self.world.side[o] and not self.known_look(o))
+
     def score_strict(self, extra: Extra) -> None:
         """Right: the id the real object's previous observation got, or a new id for an
-        object never seen (Run.update has just given each observed object its key)."""
+        object never seen or unrecognisable (Run.update has just given each observed object
+        its key)."""
         now = {b.truth: k for k, b in self.belief.items() if b.truth is not None}
         for o in self.seen_now:
             key = now[o]
-            right = key == self.last_id[o] if o in self.last_id else key not in self.ids
+            right = (key not in self.ids if o not in self.last_id or self.unrecognisable(o)
+                     else key == self.last_id[o])
             extra.strict[0] += right
             extra.strict[1] += 1
-            self.ids.add(key)
-            self.last_id[o] = key
+        for o in self.seen_now:
+            self.ids.add(now[o])
+            self.last_id[o] = now[o]
             self.last_place[o] = self.world.place[o].copy()
+            self.last_side[o] = int(self.world.side[o])
+            self.sides_seen[o].add(int(self.world.side[o]))
 
     def where(self, extra: Extra) -> None:
         """GET /api/where-is for a few objects on the tables the memory has seen."""
@@ -446,6 +496,9 @@ def summary(noise: float, score: Score, extra: Extra) -> dict[str, Any]:
         "object_ids": extra.object_ids,
         "true_objects_seen": extra.true_objects,
         "object_ids_per_true_object": None if ratio is None else round(ratio, 2),
+        "objects_at_end": extra.objects_at_end,
+        "objects_at_end_per_true_object": round(extra.objects_at_end / extra.true_objects, 2)
+        if extra.true_objects else None,
         "where_is": {"asked": extra.right_table[1],
                      "right_table_percent": share(extra.right_table),
                      # on the table it was last seen on: what any memory could know
@@ -470,6 +523,7 @@ def headline(result: dict[str, Any]) -> dict[str, float | None]:
                 result["recall_old_clusters"].values()))), 2),
             "association_strict": result["association_accuracy_strict"],
             "object_ids_per_true_object": result["object_ids_per_true_object"],
+            "objects_at_end_per_true_object": result["objects_at_end_per_true_object"],
             "where_is_right_table": result["where_is"]["right_table_percent"],
             "unmoved_within_0.1m": result["where_is"]["unmoved_within_0.1m_percent"],
             "p95_ms": result["time_per_scene_http"]["p95_ms"]}

@@ -1,9 +1,12 @@
 """Server render time of the HTML pages; prints JSON.
 
 A scene of 20 clusters (x 20 annotations, 64 px crops cut from the real kitchen frame, the
-frame itself as the scene image) and 200 more scenes for the scene log, in a scratch database
-on the configured or embedded mongod, dropped afterwards. Pages are fetched in-process through
-the ASGI app (no network), so the time is reading + rendering. Target: scene page < 200 ms.
+frame itself and its depth as the scene images) and 200 more scenes for the scene log, in a
+scratch database on the configured or embedded mongod, dropped afterwards. Pages are fetched
+in-process through the ASGI app (no network), so the time is reading + rendering. Target:
+scene page < 200 ms.
+
+The map page over the kitchen week (--map-days days, consolidated), at its end and midway.
 
 Then the search page over a large memory: --search-clusters clusters (default 1,000,000)
 built as bench/queries.py builds them (a building of 50 kitchens, a year of observations),
@@ -15,8 +18,9 @@ Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 point
 playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with
 an annotator's error, an object with an event in one in 100): the API's steps and the page.
 
-Usage: python bench/webui.py [--repeat N] [--search-clusters N] [--keep DB]
+Usage: python bench/webui.py [--repeat N] [--map-days N] [--search-clusters N] [--keep DB]
                              [--playback-scenes N]
+(--search-clusters 0: no search pages)
 """
 
 from __future__ import annotations
@@ -26,25 +30,25 @@ import html
 import re
 import statistics
 import time
-from pathlib import Path
 from urllib.parse import urlencode
 
+import cv2
 import numpy as np
 from bson import ObjectId
 from fastapi.testclient import TestClient
-from ingest import kitchen_image  # bench/ingest.py, beside this file
+from ingest import KITCHEN, kitchen_image  # bench/ingest.py, beside this file
 from queries import build  # bench/queries.py
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from scratch import print_json, scratch_store
 
+from percept_memory.demo import kitchen_week
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.rgbd import read_samples
+from percept_memory.ingest.service import IngestService
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Image, LogLine, Scene
 from percept_memory.webui.app import create_app
-
-SAMPLES = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples"
 
 STAMP = 1_700_000_000_000_000_000
 BATCH = 25  # scenes a transaction: a small embedded mongod's cache refuses 200 with crops
@@ -96,9 +100,25 @@ def search_pages(args: argparse.Namespace) -> dict:
                 "build_s": None if reuse else round(built, 1), "pages": pages}
 
 
+def map_page(args: argparse.Namespace) -> dict:
+    """Render times of the map page over the consolidated kitchen week."""
+    week = kitchen_week.generate(days=args.map_days)
+    with scratch_store() as store:
+        service = IngestService(store)
+        list(service.ingest_stream((str(i), scene) for i, scene in enumerate(week.scenes)))
+        service.pipeline.drain(timeout=1800)
+        client = TestClient(create_app(store, Settings(db=store.db.name)),
+                            base_url="http://127.0.0.1")
+        midway = week.scenes[len(week.scenes) // 2].timestamp // 10**9
+        return {"scenes": len(week.scenes), "objects": store.db.objects.count_documents({}),
+                "now": timed(client, f"/map?map={kitchen_week.MAP}", args.repeat),
+                "midway": timed(client, f"/map?map={kitchen_week.MAP}&at={midway}",
+                                args.repeat)}
+
+
 def solid_views(repeat: int) -> dict:
     """The 3D view of the real RGB-D kitchen frame: the page, and its points as binary."""
-    (scene,) = read_samples(SAMPLES / "kitchen")
+    (scene,) = read_samples(KITCHEN)
     with scratch_store() as store:
         store.put_scenes([scene])
         client = TestClient(create_app(store, Settings(db=store.db.name, consolidator=False)),
@@ -142,6 +162,7 @@ def playback(count: int, repeat: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=30)
+    parser.add_argument("--map-days", type=int, default=7)
     parser.add_argument("--search-clusters", type=int, default=1_000_000)
     parser.add_argument("--keep", metavar="DB", help="build the large memory into DB, keep it")
     parser.add_argument("--playback-scenes", type=int, default=1_000_000)
@@ -150,6 +171,9 @@ def main() -> None:
     big = synthetic.scene(rng, STAMP, clusters=20, image=image)
     if image is not None:
         big.images["color"] = Image(data=image)
+    if depth := next(KITCHEN.glob("depth_*.png"), None):
+        big.images["depth"] = Image(data=cv2.imread(str(depth), cv2.IMREAD_UNCHANGED),
+                                    encoding="mono16")
     others = [synthetic.scene(rng, STAMP + (i + 1) * 10**9, image=image) for i in range(200)]
     with scratch_store() as store:
         scenes = [big, *others]
@@ -167,7 +191,12 @@ def main() -> None:
             "crop_png": timed(client, f"/img/clusters/{big.clusters[0].id}/crop", args.repeat),
             "scene_thumbnail_png": timed(client, f"/img/scenes/{big.id}/thumb", args.repeat),
         }
-    result["search_page"] = search_pages(args)
+        if "depth" in big.images:
+            result["depth_png"] = timed(client, f"/img/scenes/{big.id}/images/depth",
+                                        args.repeat)
+    result["map_page"] = map_page(args)
+    if args.search_clusters:
+        result["search_page"] = search_pages(args)
     result["solid_views"] = solid_views(args.repeat)
     result["playback"] = playback(args.playback_scenes, args.repeat)
     print_json(result)

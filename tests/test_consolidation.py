@@ -192,8 +192,48 @@ def test_an_object_taken_away_and_brought_back_is_the_same_object(empty_store, w
     assert store.db.objects.find_one({"_id": mug_id})["state"] == "present"
 
 
-def test_the_objects_a_view_may_contain_are_found_by_index(store, consolidated):
-    """A scene's cost must not grow with the number of objects remembered elsewhere."""
-    plan = consolidated.objects_near(kitchen_week.MAP, ((0.0, 0.0), (3.5, 3.5))).explain()
-    plan = plan["queryPlanner"]["winningPlan"]
-    assert "'indexName': 'map_place'" in str(plan)
+def _box(colour: str, x: float) -> Cluster:
+    return Cluster(annotations=[Location(region=f"table {x // 3:.0f}", position=(x, 0.0, 0.8)),
+                                SemanticColor(ratios={colour: 1.0}), Shape(shape="box")])
+
+
+def _looks(at: float, *clusters: Cluster, t: int) -> Scene:
+    """A look at the table around x = at (tables 3 m apart), in a map of these tests'."""
+    return Scene(timestamp=4_000_000_000_000_000_000 + t, robot="turner", map="sides",
+                 view_region=SpatialVolume(box_min=(at - 0.6, -1.0, 0.0),
+                                           box_max=(at + 0.6, 1.0, 2.0)),
+                 clusters=list(clusters))
+
+
+def test_an_object_is_recognised_by_any_side_it_was_seen_with(empty_store):
+    """Seen red, turned blue where it stood, taken away, then found on another table showing
+    red again: a move of the same object, not a new one (Known.others)."""
+    red, blue, again = _box("red", 0.5), _box("blue", 0.5), _box("red", 3.5)
+    consolidate_one_by_one(empty_store, [_looks(0.5, red, t=0), _looks(0.5, blue, t=1),
+                                         _looks(0.5, t=2), _looks(3.5, again, t=3)])
+    assert empty_store.db.objects.count_documents({"map": "sides"}) == 1
+    event = empty_store.db.events.find_one({"cluster_id": again.id})
+    assert event["explanation"] == "move"
+    assert empty_store.get_cluster(again.id).object_id == empty_store.get_cluster(red.id).object_id
+
+
+def test_one_object_remembered_twice_is_merged_when_its_sides_meet(empty_store):
+    """Taken away red, found elsewhere showing a side never seen (blue): a new object, as
+    nothing could tell. Turned back to red where it stands: the two never stood side by side
+    and look the same, so they are one object, with one history."""
+    red, blue, turned = _box("red", 0.5), _box("blue", 3.5), _box("red", 3.5)
+    consolidate_one_by_one(empty_store, [_looks(0.5, red, t=0), _looks(0.5, t=1),
+                                         _looks(3.5, blue, t=2), _looks(3.5, turned, t=3)])
+    objects = list(empty_store.db.objects.find({"map": "sides"}))
+    assert len(objects) == 1 and objects[0]["observations"] == 3
+    assert {empty_store.get_cluster(c.id).object_id for c in (red, blue, turned)} == {
+        objects[0]["_id"]}
+    history = [e["explanation"] for e in empty_store.db.events.find(
+        {"object_id": objects[0]["_id"]}).sort("time")]
+    assert history == ["appear", "disappear", "appear", "newview"]
+
+
+def test_lookalikes_seen_side_by_side_are_never_merged(empty_store):
+    left, right, later = _box("red", 0.3), _box("red", 0.7), _box("red", 3.5)
+    consolidate_one_by_one(empty_store, [_looks(0.5, left, right, t=0), _looks(3.5, later, t=1)])
+    assert empty_store.db.objects.count_documents({"map": "sides"}) == 2

@@ -291,6 +291,29 @@ def test_one_consolidator_per_map_and_a_stale_one_cannot_commit(empty, week):
     assert empty.db[EVENTS].count_documents({}) == 0  # fenced: nothing of it landed
 
 
+def test_consolidators_taking_turns_on_a_map_keep_the_belief_a_rebuild_gives(empty, week):
+    """Each consolidator keeps the map's places in memory (memory/places.py); a copy that
+    missed a write (by another consolidator, or by its own transaction that did not commit)
+    must be read again, or it would decide on a stale belief."""
+    service = IngestService(empty)
+    first, second = (Pipeline(empty, [Consolidation(empty)], batch=5) for _ in range(2))
+    failing = Failing(set())
+    broken = Pipeline(empty, [Consolidation(empty), failing], batch=5, backoff_s=0.01)
+    scenes = week.scenes[:60]
+    for turn, start in enumerate(range(0, len(scenes), 10)):
+        ids = service.ingest_batch(scenes[start:start + 10])
+        if turn % 2:  # its batch of 5 is consolidated in memory, then its transaction fails
+            failing.bad = {ids[3].scene_id}
+            broken.run_once()
+            failing.bad.clear()
+        (first if turn % 3 else second).drain(timeout=60)
+    places = first.stages[0]._places[kitchen_week.MAP]
+    stored = {doc["_id"]: doc["position"] for doc in empty.db[OBJECTS].find(
+        {"state": {"$ne": "disappeared"}})}
+    assert {i: list(places.xyz[r]) for i, r in places.rows.items() if places.live[r]} == stored
+    assert rebuilt(empty) == canonical_belief(empty)
+
+
 def _free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))

@@ -27,12 +27,13 @@ from markupsafe import escape
 from playwright.sync_api import Page, expect, sync_playwright
 
 from percept_memory.demo import kitchen_week
-from percept_memory.ingest import synthetic
+from percept_memory.ingest import robosherlock, synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import (
     Classification,
     Cluster,
+    Detection,
     GroundTruth,
     ImageROI,
     LogLine,
@@ -43,8 +44,9 @@ from percept_memory.memory.types import (
 )
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.results import ObjectAt
+from percept_memory.webui import belief_map, live, render, search, time_axis
 from percept_memory.webui import history as history_page
-from percept_memory.webui import live, render, search
 from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
@@ -89,11 +91,44 @@ def hostile():
                               message=f"could not read {HOSTILE}")])
 
 
+VIEWED_STAMP = HOSTILE_STAMP + 3600 * 10**9
+VIEWED_LABELS = ["plate", "muesli", "juice", "glass"]  # the kitchen frame's clusters, in order
+
+
 @pytest.fixture(scope="module")
-def filled(store, week, sample, hostile):
+def viewed(sample):
+    """The real kitchen frame with its depth image, its clusters named by a classifier, the
+    first one also found by a detector and its text read, each of those with a box."""
+    clusters = []
+    for i, cluster in enumerate(sample.clusters):
+        roi = cluster.hypothesis_of(ImageROI)
+        x, y, w, h = roi.box
+        annotations = [Classification(class_name=VIEWED_LABELS[i], confidence=0.8,
+                                      source="CNNClassifier")]
+        if i == 0:
+            annotations += [Detection(name="plate", box=(x, y + h // 2, w, h // 2),
+                                      source="LineModDetector"),
+                            Text(text="IKEA", box=(x + 4, y + 4, w // 3, h // 4),
+                                 source="OCRAnnotator")]
+        if i == 3:
+            annotations.append(Detection(name=HOSTILE, box=(x, y, w, h), source=f'"{HOSTILE}'))
+        clusters.append(Cluster(hypotheses=[roi], annotations=annotations))
+    return Scene(timestamp=VIEWED_STAMP, robot="pr2-viewer", images=sample.images,
+                 clusters=clusters)
+
+
+@pytest.fixture(scope="module")
+def pnp09():
+    """RoboSherlock's own store of 35 frames: clusters with foreign types (Segment, ...)."""
+    return list(robosherlock.read_dump(ROBOSHERLOCK / "mongodump" / "PnP09ObjSymbolicGTFixed"))
+
+
+@pytest.fixture(scope="module")
+def filled(store, week, sample, hostile, viewed, pnp09):
     ingest_consolidated(store, week.scenes)
-    store.put_scenes([sample, hostile])  # not consolidated: clusters without an object
-    store.outbox.delete_many({"_id": {"$in": [sample.id, hostile.id]}})
+    unconsolidated = [sample, hostile, viewed, *pnp09]  # clusters without an object
+    store.put_scenes(unconsolidated)
+    store.outbox.delete_many({"_id": {"$in": [s.id for s in unconsolidated]}})
     store.db.jobs.delete_many({})  # those the pipeline queued, replaced by jobs in every state
     store.db.jobs.insert_many(lookups(week))
     return store
@@ -308,7 +343,7 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     drawn = page.locator(f'a.object.hidden[data-object="{hidden}"]')
     expect(drawn).to_have_count(1)
     name = store.db.objects.find_one({"_id": hidden})["name"]
-    expect(drawn.locator("text")).to_have_text(name)
+    assert drawn.locator("title").text_content().startswith(f"{name}: hidden since")
     expect(page.locator(f'table.believed tr.hidden a[href="/objects/{hidden}"]')).to_have_count(1)
     shot(page, "8-map")
 
@@ -359,17 +394,17 @@ def test_scene_image_with_numbered_cluster_boxes(page, url, sample):
     image = page.get_by_role("img", name=re.compile("color image of the scene"))
     images_decode(page)
     assert image.evaluate("i => i.naturalWidth") == sample.images["color"].width
-    boxes = page.locator("a.box rect")
+    boxes = page.locator("a.mark rect.region")
     expect(boxes).to_have_count(len(sample.clusters))
     for i, cluster in enumerate(sample.clusters):
         x, y, w, h = cluster.hypothesis_of(ImageROI).box
         assert [boxes.nth(i).get_attribute(k) for k in ("x", "y", "width", "height")] == \
             [str(x), str(y), str(w), str(h)]
-    expect(page.locator("a.box text").first).to_have_text("1")
+    expect(page.locator("a.mark text.number").first).to_have_text("1")
     expect(page.locator(".object-link")).to_have_count(0)  # not consolidated
-    page.locator("a.box").nth(1).click()
-    expect(page).to_have_url(f"{url}/scenes/{sample.id}#cluster-2")
     shot(page, "5-scene-image")
+    boxes.nth(1).click()
+    expect(page).to_have_url(f"{url}/clusters/{sample.clusters[1].id}")
 
 
 def test_live_page_shows_new_scenes_without_reload(page, url, store):
@@ -484,13 +519,14 @@ FOCUSED = """() => { const e = document.activeElement;
   return [e.dataset.audit === undefined ? e.outerHTML.slice(0, 120) : +e.dataset.audit, shown]; }"""
 
 
-def audited_pages(store, week, sample, hostile) -> list[str]:
+def audited_pages(store, week, sample, hostile, viewed) -> list[str]:
     """One of each kind of page, with content: every page of the site's navigation bar and
     the pages they lead to, an error page and a refused search among them."""
     scene = sorted(week.scenes, key=lambda s: s.timestamp)[-1]
     cluster = store.get_cluster(scene.clusters[0].id)
     return ["/", "/?region=shelf&type=pm.annotation.Text", f"/scenes/{scene.id}",
-            f"/scenes/{sample.id}", f"/scenes/{hostile.id}", f"/clusters/{cluster.id}",
+            f"/scenes/{sample.id}", f"/scenes/{viewed.id}", f"/scenes/{hostile.id}",
+            f"/clusters/{cluster.id}",
             f"/objects/{cluster.object_id}", "/search?text=cereal", "/search?text=cereal&view=list",
             "/search?near=2.4,0.1,1.25&k=5", "/search?sphere=1,2", "/map", "/annotators",
             "/enrichment", "/live", "/scenes/nonsense", f"/scenes/{sample.id}?view=3d",
@@ -498,11 +534,11 @@ def audited_pages(store, week, sample, hostile) -> list[str]:
 
 
 def test_every_page_is_keyboard_navigable_with_alt_text_and_labels(page, url, store, week,
-                                                                   sample, hostile):
+                                                                   sample, hostile, viewed):
     """On each page: every image has alt text (and every SVG drawing a label), every form
     control a label, and Tab visits every link and control once, in document order, each
     with a visible focus outline, starting with the skip link."""
-    for path in audited_pages(store, week, sample, hostile):
+    for path in audited_pages(store, week, sample, hostile, viewed):
         page.goto(url + path)
         page.wait_for_load_state("load")
         assert page.evaluate(NO_ALT) == [], path
@@ -893,3 +929,265 @@ def test_a_search_exports_its_results_as_training_data(client):
     provenance = archive.read("provenance.jsonl").decode().splitlines()
     assert manifest["query"]["text"] == "cereal" and total > 0 and provenance
     assert len(provenance) + sum(manifest.get("skipped", {}).values()) == total
+
+
+# --- the scene viewer, the cluster page's fields, the map's labels (issue 17) --------------------
+
+IMAGE_SCALE = """i => { const b = i.getBoundingClientRect();
+  const s = Math.min(b.width / i.naturalWidth, b.height / i.naturalHeight);
+  return [b.x + (b.width - i.naturalWidth * s) / 2,
+          b.y + (b.height - i.naturalHeight * s) / 2, s]; }"""
+"""Where an object-fit: contain image's pixels are on the screen: left, top, scale."""
+
+
+def test_scene_viewer_draws_each_layer_over_the_image_and_switches_it_off(page, url, viewed):
+    page.goto(f"{url}/scenes/{viewed.id}")
+    images_decode(page)
+    color = page.locator("#image-color")
+    left, top, scale = color.locator("img").evaluate(IMAGE_SCALE)
+    regions = color.locator("rect.shape.region")
+    expect(regions).to_have_count(len(viewed.clusters))
+    for i, cluster in enumerate(viewed.clusters):
+        x, y, w, h = cluster.hypothesis_of(ImageROI).box
+        drawn = regions.nth(i).bounding_box()  # with its 2 px stroke
+        assert drawn["x"] == pytest.approx(left + x * scale, abs=2)
+        assert drawn["y"] == pytest.approx(top + y * scale, abs=2)
+        assert drawn["width"] == pytest.approx(w * scale, abs=3)
+    masks, detections, texts = (color.locator(f'.shape[data-layer="{layer}"]') for layer in
+                                ("mask", "pm.annotation.Detection", "pm.annotation.Text"))
+    expect(masks).to_have_count(len(viewed.clusters))
+    expect(detections).to_have_count(2)  # the plate's and the hostile one
+    expect(texts).to_have_count(1)
+    shot(page, "13-scene-viewer")
+
+    color.get_by_label("pm.annotation.Detection").uncheck()
+    for detection in detections.all():
+        expect(detection).to_be_hidden()
+    expect(texts).to_be_visible()
+    expect(regions.first).to_be_visible()
+    color.get_by_label("OCRAnnotator").uncheck()
+    expect(texts).to_be_hidden()
+    color.get_by_label("mask").uncheck()
+    for i in range(len(viewed.clusters)):
+        expect(masks.nth(i)).to_be_hidden()
+        expect(regions.nth(i)).to_be_visible()
+    color.get_by_label("pm.annotation.Detection").check()
+    expect(detections.first).to_be_visible()
+    expect(texts).to_be_hidden()  # its annotator is still off
+
+
+def test_scene_viewer_shows_labels_on_hover_and_opens_a_cluster_on_click(page, url, viewed):
+    page.goto(f"{url}/scenes/{viewed.id}")
+    tips = page.locator("#image-color .tip")
+    for tip in tips.all():
+        expect(tip).to_be_hidden()
+    marks = page.locator("#image-color a.mark")
+    for i, label in enumerate(VIEWED_LABELS):
+        marks.nth(i).locator("rect.region").hover()
+        expect(tips.nth(i)).to_be_visible()
+        expect(tips.nth(i)).to_contain_text(label)
+    expect(tips.first).to_have_text("1. plate")  # the classifier and the detector agree
+    marks.nth(2).locator("rect.region").click()
+    expect(page).to_have_url(f"{url}/clusters/{viewed.clusters[2].id}")
+
+
+def test_scene_viewer_zooms_with_its_buttons_and_ctrl_wheel(page, url, viewed):
+    page.goto(f"{url}/scenes/{viewed.id}")
+    images_decode(page)
+    image, region = page.locator("#image-color img"), page.locator("#image-color rect.region")
+    fit = image.evaluate(IMAGE_SCALE)[2]
+    box = region.first.bounding_box()["width"]
+    page.locator("#image-color").get_by_role("button", name="zoom in").click()
+    assert image.evaluate(IMAGE_SCALE)[2] == pytest.approx(1.5 * fit, rel=0.01)
+    assert region.first.bounding_box()["width"] == pytest.approx(1.5 * box, rel=0.02)
+    page.locator("#image-color").get_by_role("button", name="fit").click()
+    assert image.evaluate(IMAGE_SCALE)[2] == pytest.approx(fit, rel=0.01)
+    frame = page.locator("#image-color .frame").bounding_box()
+    page.mouse.move(frame["x"] + frame["width"] / 2, frame["y"] + frame["height"] / 2)
+    page.keyboard.down("Control")
+    page.mouse.wheel(0, -300)
+    page.keyboard.up("Control")
+    expect(page.locator("#image-color")).to_have_class(re.compile("zoomed"))
+    assert image.evaluate(IMAGE_SCALE)[2] > 2 * fit
+
+
+FALSE_COLOUR = """i => { const c = document.createElement("canvas");
+  c.width = i.naturalWidth; c.height = i.naturalHeight;
+  const g = c.getContext("2d"); g.drawImage(i, 0, 0);
+  const d = g.getImageData(0, 0, c.width, c.height).data;
+  let pixels = 0, coloured = 0; const hues = new Set();
+  for (let p = 0; p < d.length; p += 4 * 61) {
+    const [r, gr, b] = [d[p], d[p + 1], d[p + 2]]; pixels++;
+    if (Math.max(r, gr, b) - Math.min(r, gr, b) > 60) coloured++;
+    hues.add(`${r >> 6},${gr >> 6},${b >> 6}`);
+  }
+  return [coloured / pixels, hues.size]; }"""
+"""The share of strongly coloured pixels and how many coarse colours the image has."""
+
+
+def test_depth_is_shown_in_false_colour_with_its_range(page, url, viewed):
+    page.goto(f"{url}/scenes/{viewed.id}")
+    images_decode(page)
+    depth = page.locator("#image-depth")
+    coloured, colours = depth.locator("img").evaluate(FALSE_COLOUR)
+    assert coloured > 0.5 and colours >= 8, (coloured, colours)
+    readings = viewed.images["depth"].data
+    near, far = readings[readings > 0].min() / 1000, readings.max() / 1000
+    expect(depth.locator("figcaption")).to_contain_text(f"{near:.2f} m … {far:.2f} m")
+    expect(depth.get_by_role("img", name=re.compile("near, blue, to far, red"))).to_be_visible()
+    shot(page, "14-depth")
+
+
+def test_scene_viewer_reads_without_javascript(browser, url, viewed):
+    context = browser.new_context(java_script_enabled=False)
+    page = context.new_page()
+    page.goto(f"{url}/scenes/{viewed.id}")
+    expect(page.locator("#image-color rect.shape.region")).to_have_count(len(viewed.clusters))
+    for shape in page.locator("#image-color .shape").all():
+        expect(shape).to_be_visible()
+    expect(page.locator("#image-color form.layers")).to_be_hidden()  # they need the script
+    expect(page.locator("#image-color .zoom")).to_be_hidden()
+    page.locator("#image-color a.mark").first.locator("rect.region").hover()
+    expect(page.locator("#image-color .tip").first).to_be_visible()  # CSS alone
+    context.close()
+
+
+def test_the_viewer_escapes_what_annotators_said(client, viewed):
+    body = client.get(f"/scenes/{viewed.id}").text
+    assert "<script>" not in body and "&lt;script&gt;" in body
+    assert 'data-annotator="&#34;&lt;script&gt;' in body
+
+
+def test_the_viewer_may_run_its_own_script_only(client, viewed):
+    policy = client.get(f"/scenes/{viewed.id}").headers["content-security-policy"]
+    assert "script-src 'self'" in policy and "connect-src" not in policy
+    assert "'unsafe-inline'" not in policy
+    script = client.get("/static/ui/viewer.js")
+    assert script.status_code == 200 and "zoomTo" in script.text
+
+
+def test_a_foreign_annotation_shows_collapsible_fields_not_reprs(page, url, client, pnp09):
+    cluster = next(c for scene in pnp09 for c in scene.clusters
+                   if any(render.type_name(a) == "rs.annotation.Segment" for a in c.annotations))
+    contour = next(a for a in cluster.annotations
+                   if render.type_name(a) == "rs.annotation.Segment").fields["contour"]
+    assert "ObjectId(" not in client.get(f"/clusters/{cluster.id}").text
+    page.goto(f"{url}/clusters/{cluster.id}")
+    segment = page.locator('section.annotation[aria-label="rs.annotation.Segment"]')
+    points = segment.locator("details.nested").filter(
+        has=page.locator("summary", has_text=f"{len(contour)} × rs.cv.Point"))
+    expect(points).to_have_count(1)
+    rows = points.locator("table.records tr")
+    expect(rows.first).to_be_hidden()  # collapsed until asked
+    points.locator("summary").click()
+    expect(rows).to_have_count(1 + render.MAX_ROWS)
+    expect(rows.nth(1)).to_have_text(re.compile(f"{contour[0]['x']}\\s*{contour[0]['y']}"))
+    expect(points).to_contain_text(f"and {len(contour) - render.MAX_ROWS} more")
+    expect(segment.locator("summary", has_text="rs.cv.Moments")).to_have_count(1)
+    expect(page.locator("main")).not_to_contain_text("ObjectId(")
+    expect(page.locator("main")).not_to_contain_text("_parent")
+    shot(page, "15-foreign-cluster")
+
+
+def test_alternatives_are_named_by_their_objects_and_the_crop_is_large(page, url, store):
+    event = store.db.events.find_one({"cluster_id": {"$ne": None}, "alternatives": {
+        "$elemMatch": {"object_id": {"$type": "objectId"}}}})
+    considered = [a["object_id"] for a in event["alternatives"] if a["object_id"]]
+    names = {o["_id"]: o["name"] for o in store.db.objects.find({"_id": {"$in": considered}})}
+    page.goto(f"{url}/clusters/{event['cluster_id']}")
+    links = page.locator("table.alternatives a.alternative")
+    expect(links).to_have_text([names[o] for o in considered])
+    for i, object_id in enumerate(considered):
+        expect(links.nth(i)).to_have_attribute("href", f"/objects/{object_id}")
+    images_decode(page)
+    crop = page.locator("img.crop")
+    assert crop.bounding_box()["width"] >= 300 > crop.evaluate("i => i.naturalWidth")
+
+
+TEXT_BOXES = """svg => Array.from(svg.querySelectorAll("text"), t => {
+  const b = t.getBoundingClientRect();
+  return [t.textContent, b.left, b.top, b.right, b.bottom]; })"""
+
+
+def overlapping(boxes: list) -> list[tuple[str, str]]:
+    """The pairs of labels whose boxes on the screen overlap (by more than half a pixel)."""
+    return [(a[0], b[0]) for i, a in enumerate(boxes) for b in boxes[i + 1:]
+            if min(a[3], b[3]) - max(a[1], b[1]) > 0.5 and min(a[4], b[4]) - max(a[2], b[2]) > 0.5]
+
+
+def test_map_labels_never_overlap_and_crowds_are_counted(page, url, store, week):
+    stamps = sorted(s.timestamp for s in week.scenes)
+    for t in (stamps[len(stamps) // 3], stamps[2 * len(stamps) // 3], None):
+        page.goto(f"{url}/map?" + urlencode({"map": kitchen_week.MAP} | (
+            {"at": t // 10**9 + 1} if t else {})))
+        plan = page.locator("figure.map svg")
+        boxes = plan.evaluate(TEXT_BOXES)
+        assert overlapping(boxes) == [], t
+        objects = page.locator("a.object")
+        labelled = page.locator("a.object text")
+        counted = sum(int(text.removeprefix("+")) for text in
+                      page.locator("g.crowd text").all_text_contents())
+        assert labelled.count() + counted == objects.count() > 0, t
+        for i in range(objects.count()):
+            drawn = objects.nth(i)
+            if drawn.locator("text").count():
+                name = drawn.locator("title").text_content().partition(":")[0]
+                expect(drawn.locator("text")).to_have_text(name)
+    shot(page, "16-map")
+
+
+def test_dense_objects_are_counted_in_one_marker():
+    """Thirty objects on one spot: as many labels as find room, the rest one "+N" marker."""
+    view = belief_map.Projection.around([0.0, 1.0], [0.0, 1.0])
+    objects = [belief_map.DrawnObject(
+        ObjectAt(object_id=ObjectId(), name=f"cup {i}", state="present", since=0,
+                 explanation="stay"), 200.0, 200.0) for i in range(30)]
+    _, crowds = belief_map.lay_out(view, [], objects)
+    labels = [o.label for o in objects if o.label]
+    assert 0 < len(labels) < 30 and len(crowds) == 1
+    assert crowds[0].label.text == f"+{30 - len(labels)}"
+    boxes = [(label.text, label.box.x, label.box.y, label.box.x + label.box.width,
+              label.box.y + label.box.height) for label in [*labels, crowds[0].label]]
+    assert overlapping(boxes) == []
+
+
+OPACITY = """svg => Array.from(svg.querySelectorAll("a.object"),
+  a => [a.dataset.object, a.classList.contains("hidden"), Number(getComputedStyle(a).opacity)])"""
+
+
+def test_hidden_objects_fade_with_the_time_since_they_were_last_seen(page, url, store, week):
+    t, _, _ = past_moment(store, week)
+    page.goto(f"{url}/map?" + urlencode({"map": kitchen_week.MAP, "at": t // 10**9}))
+    drawn = page.locator("figure.map svg").evaluate(OPACITY)
+    assert all(opacity == 1 for _, hidden, opacity in drawn if not hidden)
+    hidden = {ObjectId(o): opacity for o, is_hidden, opacity in drawn if is_hidden}
+    seen = {}
+    for event in store.db.events.find({"object_id": {"$in": list(hidden)}, "time": {"$lte": t},
+                                       "explanation": {"$nin": ["hidden", "disappear"]}}):
+        seen[event["object_id"]] = max(seen.get(event["object_id"], 0), event["time"])
+    by_age = [hidden[o] for o in sorted(hidden, key=lambda o: seen[o])]  # oldest first
+    assert by_age == sorted(by_age) and by_age[0] < by_age[-1] < 1, by_age
+
+
+def test_the_map_has_a_time_axis_leading_to_its_moments(page, url):
+    page.goto(f"{url}/map")
+    axis = page.get_by_role("group", name=re.compile("^time axis from"))
+    ticks = axis.get_by_role("link")
+    assert 2 <= ticks.count() <= time_axis.MAX_TICKS
+    xs = [float(line.get_attribute("x1")) for line in axis.locator("a line").all()]
+    assert xs == sorted(xs)
+    label = ticks.nth(1).text_content().strip()
+    ticks.nth(1).click()
+    expect(page).to_have_url(re.compile(r"/map\?map=.*&at=\d+$"))
+    expect(page.locator("h1 small")).to_contain_text(label.split()[-1])
+
+
+@pytest.mark.parametrize("seconds", [30, 3600, 3 * 86400, 200 * 86400, 30 * 365 * 86400])
+def test_a_time_axis_has_a_few_round_ticks_for_any_span(seconds):
+    start = 1_709_533_918 * 10**9  # 2024-03-04 06:31:58 UTC
+    axis = time_axis.axis(start, start + seconds * 10**9, start, 960)
+    assert 2 <= len(axis.ticks) <= time_axis.MAX_TICKS
+    xs = [tick.x for tick in axis.ticks]
+    assert xs == sorted(xs) and axis.ends[0] <= xs[0] and xs[-1] <= axis.ends[1]
+    assert all(tick.t % 10**9 == 0 and start <= tick.t for tick in axis.ticks)
+    assert re.match(r"Mar 0[45]|20\d\d", axis.ticks[0].label)  # the first one says its date

@@ -66,7 +66,8 @@ def test_a_scene_in_3d_shows_its_points_boxes_and_camera(page, url, sample):
     assert background < 0.9
     b, g, r = (seen[..., i].astype(int) for i in range(3))
     assert ((r > 200) & (g < 90) & (b < 90)).sum() > 50, "no red cluster box"
-    expect(page.locator("figure.scene-image img")).to_have_count(2)  # colour and depth stay
+    expect(page.locator("figure.viewer img")).to_have_count(2)  # colour and depth stay
+    expect(page.locator("#image-color form.layers")).to_be_visible()  # viewer.js runs too
     shot(page, "13-scene-3d")
 
 
@@ -186,11 +187,17 @@ def test_bad_points_requests_get_the_json_error(client, sample, path, params, st
     assert error["status"] == status and error["message"]
 
 
-def test_only_the_3d_views_run_scripts(client, sample):
+def test_only_the_3d_views_run_their_script_and_fetch(client, sample):
+    """In 2D the map runs no script and the scene page with images only its viewer, which
+    fetches nothing; in 3D both run view3d.js, which fetches the points."""
     for path in (f"/scenes/{sample.id}?", f"/map?map={kitchen_week.MAP}&"):
-        assert "script-src" not in client.get(path).headers["content-security-policy"]
+        flat = client.get(path)
+        policy = flat.headers["content-security-policy"]
+        assert "connect-src" not in policy and "view3d.js" not in flat.text
+        assert ("script-src 'self'" in policy) == path.startswith("/scenes")  # viewer.js
         solid = client.get(path + "view=3d")
         assert "script-src 'self'" in solid.headers["content-security-policy"]
+        assert "connect-src 'self'" in solid.headers["content-security-policy"]
         assert '<script type="module" src="/static/ui/view3d.js">' in solid.text
         refused = client.get(path + "view=4d")
         assert refused.status_code == 422 and 'role="alert"' in refused.text

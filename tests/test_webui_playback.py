@@ -6,6 +6,8 @@ errors, and the playback page in a real headless Chromium: the steps, the time s
 
 from __future__ import annotations
 
+import re
+
 import pytest
 from bson import ObjectId
 from playwright.sync_api import Page, expect
@@ -180,6 +182,16 @@ def test_no_parameter_value_gives_a_server_error(client):
         for value in test_webui.NASTY:
             answer = client.get("/playback", params={name: value})
             assert answer.status_code < 500, (name, value, answer.text[-500:])
+
+
+def test_the_belief_is_drawn_as_on_the_map_page(client, times):
+    """Playback draws its map's belief as the map page does (belief_map.drawn_belief): the
+    same labels placed apart, crowds and hidden objects fading with their age."""
+    t = times[-1]
+    figures = [re.search(r'<figure class="map">.*?</figure>', client.get(path).text, re.S)[0]
+               for path in (f"/playback?robot={ROBOT}&t={t}", f"/map?map={MAP}&t={t}")]
+    assert figures[0] == figures[1]
+    assert 'lengthAdjust="spacingAndGlyphs"' in figures[0] and ' opacity="0.' in figures[0]
 
 
 # --- in the browser --------------------------------------------------------------------------

@@ -5,7 +5,8 @@ scene, live and in a rebuild alike.
 
 `objects` holds one document per physical object believed to exist, in one map:
     {_id, map, name, names, label_weights, state: present | hidden | disappeared, first_seen,
-     last_seen (ns), last_scene, last_cluster, position, x, y, region, robot, observations}
+     last_seen (ns), last_scene, last_cluster, views (a cluster per distinct look it was seen
+     with, the last one last), position, x, y, region, robot, observations}
 `events` holds one document per object per scene that concerned it:
     {_id, map, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move,
      newview, appear, hidden, disappear), probability, alternatives [{object_id, explanation,
@@ -25,7 +26,6 @@ from collections.abc import Sequence
 
 from bson import ObjectId
 from pymongo import UpdateOne
-from pymongo.cursor import Cursor
 
 from . import documents as docs
 from .identity import (
@@ -38,6 +38,7 @@ from .identity import (
     resolve,
 )
 from .naming import naming_fields, naming_labels, stored_weights
+from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
@@ -49,7 +50,9 @@ _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
 # what deciding reads of a candidate object (its names only once it is seen again)
-CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1}
+CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1,
+                    "first_seen": 1, "views": 1}
+VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
@@ -69,16 +72,29 @@ class Consolidation:
         self.params = params or Parameters()
         self.max_unseen_candidates = max_unseen_candidates
         self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
+        self._places: dict[str, Places] = {}  # map -> where its objects are believed
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
 
     def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
-        calibration = self.calibration(map_name, session)
+        stored = self.calibrations.find_one({"_id": map_name}, session=session)
+        calibration = self._calibration(stored)
+        places = self._places_of(map_name, stored and stored.get("version"), session)
+        places.version = ObjectId()  # the version this transaction writes, if it commits
         for scene, arrived in self._scenes(scene_ids, session):
-            self.consolidate(scene, arrived, calibration, session)
-        self.calibrations.replace_one({"_id": map_name}, {"cues": calibration.to_document()},
-                                      upsert=True, session=session)
+            self.consolidate(scene, arrived, calibration, places, session)
+        self.calibrations.replace_one(
+            {"_id": map_name}, {"cues": calibration.to_document(), "version": places.version},
+            upsert=True, session=session)
+
+    def _places_of(self, map_name: str, version: ObjectId | None, session) -> Places:
+        """The map's places in memory, read again unless they are of the stored version."""
+        places = self._places.get(map_name)
+        if places is None or version is None or places.version != version:
+            places = self._places[map_name] = Places.load(self.objects, map_name, version,
+                                                          session)
+        return places
 
     def reset(self, map_name: str) -> None:
         """Forget the map's objects, their events and what its calibration learnt."""
@@ -87,21 +103,26 @@ class Consolidation:
             self.events.delete_many({"object_id": {"$in": ids[start:start + 10_000]}})
         self.objects.delete_many({"map": map_name})
         self.calibrations.delete_one({"_id": map_name})
+        self._places.pop(map_name, None)
 
     def calibration(self, map_name: str, session=None) -> Calibration:
         """What the map's identity model has learnt so far (the prior before its first scene)."""
-        stored = self.calibrations.find_one({"_id": map_name}, session=session)
+        return self._calibration(self.calibrations.find_one({"_id": map_name},
+                                                            session=session))
+
+    def _calibration(self, stored: dict | None) -> Calibration:
         return (Calibration.from_document(stored["cues"]) if stored
                 else Calibration.prior(self.params))
 
     def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
-                    session) -> list[Decision]:
+                    places: Places, session) -> list[Decision]:
         """Decide who is who in one stored scene and record it. `arrived`: cluster id -> how
         many of its annotations came with the scene (the evidence to decide on)."""
-        believed = self._candidates(scene, session)
-        last = self._observations([o["last_cluster"] for o, _ in believed], session)
-        known = [Known(o["_id"], last[o["last_cluster"]], seen)
-                 for o, seen in believed if o["last_cluster"] in last]
+        believed = self._candidates(scene, places, session)
+        seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
+        known = [Known(o["_id"], seen_as[o["last_cluster"]], in_view,
+                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
+                 for o, in_view in believed if o["last_cluster"] in seen_as]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params, calibration)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
@@ -121,6 +142,8 @@ class Consolidation:
                 continue  # events record changes: still hidden (or still gone) is no news
             events.append(_event(decision, object_id, scene, cluster, previous))
             objects.append(_object_update(object_id, decision, scene, cluster, previous))
+            places.put(object_id, cluster.position if cluster else previous.get("position"),
+                       live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
         if objects:
@@ -128,7 +151,49 @@ class Consolidation:
             self.events.insert_many(events, session=session)
         if links:
             self.store.clusters.bulk_write(links, session=session)
+        for keep, twin in self._remembered_twice(decisions, clusters, session):
+            self._merge(keep, twin, scene, places, session)
         return decisions
+
+    def _remembered_twice(self, decisions: list[Decision], clusters: dict, session) -> list:
+        """(object, its twin): an object seen now that looks beyond doubt like another known
+        object not seen now, the two never seen together in one scene: one object
+        remembered twice (e.g. moved while turned to a side not seen before, then turned
+        back). Identical twins never seen side by side are merged too: nobody could tell
+        them apart."""
+        pairs, taken = [], {d.object for d in decisions if d.key in clusters}
+        for decision in decisions:
+            if decision.key not in clusters or decision.object is None:
+                continue
+            for other in decision.lookalikes:
+                if other not in taken and not self._seen_together(decision.object, other,
+                                                                  session):
+                    pairs.append((decision.object, other))
+                    taken.add(other)
+        return pairs
+
+    def _seen_together(self, a, b, session) -> bool:
+        scenes = [set(self.events.distinct("scene_id", {"object_id": o, "cluster_id": {
+            "$ne": None}}, session=session)) for o in (a, b)]
+        return bool(scenes[0] & scenes[1])
+
+    def _merge(self, keep, twin, scene: Scene, places: Places, session) -> None:
+        """One object remembered as two: `twin`'s looks, observations, names and history
+        become `keep`'s, and `twin` is no more."""
+        kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
+        weights = stored_weights(kept) + stored_weights(gone)
+        views = [v for v in _views(gone) if v not in _views(kept)] + _views(kept)
+        self.objects.update_one({"_id": keep}, {
+            "$set": {"views": views[-VIEWS_KEPT:], **naming_fields(weights),
+                     "first_seen": min(kept["first_seen"], gone["first_seen"])},
+            "$inc": {"observations": gone.get("observations", 0)}}, session=session)
+        self.objects.delete_one({"_id": twin}, session=session)
+        self.events.delete_many({"object_id": twin, "scene_id": scene.id}, session=session)
+        self.events.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
+                                session=session)
+        self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
+                                        session=session)
+        places.put(twin, None, live=False)
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and
@@ -159,38 +224,21 @@ class Consolidation:
             self._decoded.popitem(last=False)
         return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
 
-    def _candidates(self, scene: Scene, session) -> list[tuple[dict, bool]]:
+    def _candidates(self, scene: Scene, places: Places, session) -> list[tuple[dict, bool]]:
         """The objects of the scene's map its clusters may be, with whether their place is in
         view: all believed present or hidden whose place is in view, and the most recently
         seen of the others, disappeared ones included (they may have been moved or brought
         back here). Older unseen objects still persist; they are just not matched now, which
         keeps a scene's cost independent of how many objects the memory holds."""
-        in_sight = []
-        view = View(scene)
-        bounds = view.bounds()
-        if bounds is not None:
-            for doc in self.objects_near(scene.map, bounds, session, CANDIDATE_FIELDS):
-                if view.sees(_vec(doc.get("position"))):
-                    in_sight.append((doc, True))
-        seen = [doc["_id"] for doc, _ in in_sight]
+        seen = places.in_view(View(scene))
+        in_sight = [(doc, True) for doc in self.objects.find(
+            {"_id": {"$in": seen}}, CANDIDATE_FIELDS, session=session)] if seen else []
         recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, CANDIDATE_FIELDS,
                                    session=session).sort(RECENT).limit(self.max_unseen_candidates)
         unseen = [(doc, False) for doc in recent]
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
-
-    def objects_near(self, map_name: str, bounds, session=None, fields=None) -> Cursor:
-        """The objects of a map believed present or hidden whose x, y lie in a box
-        ((x0, y0), (x1, y1)), by the index on their place."""
-        (x0, y0), (x1, y1) = bounds
-        query = {"map": map_name, "x": {"$gte": x0, "$lte": x1}, "y": {"$gte": y0, "$lte": y1},
-                 "state": {"$ne": "disappeared"}}
-        return self.objects.find(query, fields, session=session).hint("map_place")
-
-
-def _vec(value) -> tuple | None:
-    return tuple(value) if value is not None else None
 
 
 def _observation(cluster: Cluster, arrived: int) -> Observation:
@@ -221,11 +269,18 @@ def _event(decision: Decision, object_id, scene: Scene, cluster: Cluster | None,
     }
 
 
+def _views(doc: dict) -> list:
+    """The clusters showing each distinct look of an object, the one it was last seen with
+    last (older beliefs kept only the last)."""
+    return doc.get("views") or [doc["last_cluster"]]
+
+
 def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster | None,
                    previous: dict) -> UpdateOne:
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
     weights = stored_weights(previous)
+    views = [c for c in _views(previous) if c != decision.look] if previous else []
     weights.update(naming_labels(cluster.annotations))
     position = list(cluster.position) if cluster.position else None
     return UpdateOne(
@@ -234,6 +289,7 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
             "$set": {
                 "map": scene.map, "state": "present", "last_seen": scene.timestamp,
                 "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
+                "views": [*views, cluster.id][-VIEWS_KEPT:],
                 "position": position, "x": position[0] if position else None,
                 "y": position[1] if position else None, "region": cluster.region,
                 **naming_fields(weights),

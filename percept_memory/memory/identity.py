@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.special import gammainc
 
 from .types import Annotation, Hypothesis
 
@@ -61,8 +62,12 @@ class Parameters:
     # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0).
     prior_move: float = 0.0338  # odds that an object moved between two looks at it
     prior_newview: float = 0.3032  # odds that the same place shows another side of it
-    prior_appear: float = 4.1028  # odds of "a new object" against a known one
+    # odds of "a new object" against a known one: lower since the look odds of different
+    # objects are learnt from scenes (bench/belief.py, tune seeds; was 4.1 on identity.py's)
+    prior_appear: float = 0.3
     prior_gone: float = 2.575  # odds of "an object in view is not there any more"
+    # looks-the-same odds beyond which another known object is a lookalike (Decision)
+    lookalike_odds: float = 50.0
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
@@ -92,11 +97,14 @@ class Observation:
 
 @dataclass
 class Known:
-    """An object believed to exist, as last observed, and whether its place is in view now."""
+    """An object believed to exist, as last observed, and whether its place is in view now;
+    `others`: the other looks it was seen with before (its other sides), so an object turned
+    back, or moved showing a side seen before, is still recognised."""
 
     key: Any  # the object id
     last: Observation
     in_view: bool
+    others: Sequence[Observation] = ()
 
 
 @dataclass
@@ -115,6 +123,12 @@ class Decision:
     explanation: Explanation
     probability: float
     alternatives: list[Alternative] = field(default_factory=list)
+    # the key of the known look (Known.last or one of its others) the new observation looks
+    # the same as; None for a look the object was not seen with before
+    look: Any = None
+    # other known objects the new observation looks the same as beyond doubt: one of them
+    # may be this very object, remembered twice (see consolidation.py's merge)
+    lookalikes: list = field(default_factory=list)
 
 
 def gaussian(distance: float, sigma: float) -> float:
@@ -133,26 +147,29 @@ def _by_type(evidence: Sequence) -> dict[type, list]:
     """The evidence that can be compared, by type (in order of first appearance)."""
     grouped: dict[type, list] = {}
     for item in evidence:
-        if _similarity(type(item)) is not None:
+        if _comparison(type(item)) is not None:
             grouped.setdefault(type(item), []).append(item)
     return grouped
 
 
 @cache
-def _similarity(kind: type) -> Callable | None:
-    """The similarity of a type, or None when it compares nothing (the base's default)."""
-    similarity = getattr(kind, "similarity", None)
-    return None if similarity is None or similarity is Annotation.similarity else similarity
+def _comparison(kind: type) -> Callable | None:
+    """How a type compares two lists of its items (a matrix, NaN where a pair does not
+    compare): its own `similarities` (the built-in types, vectorised), else its `similarity`
+    pair by pair; None when it compares nothing (the base's default)."""
+    batch = getattr(kind, "similarities", None)
+    if batch is not None:
+        return batch
+    pair = getattr(kind, "similarity", None)
+    if pair is None or pair is Annotation.similarity:
+        return None
+    return lambda a, b: np.array([[pair(x, y) for y in b] for x in a], dtype=float
+                                 ).reshape(len(a), len(b))
 
 
 def similarities(kind: type, a: list, b: list) -> np.ndarray:
-    """The similarity of every pair of items of one type, NaN where they do not compare: the
-    type's own `similarities` when it has one (numeric types, vectorised), else pair by pair."""
-    batch = getattr(kind, "similarities", None)
-    if batch is not None:
-        return np.asarray(batch(a, b), dtype=float)
-    pair = _similarity(kind)
-    return np.array([[pair(x, y) for y in b] for x in a], dtype=float).reshape(len(a), len(b))
+    """The similarity of every pair of items of one type, NaN where they do not compare."""
+    return np.asarray(_comparison(kind)(a, b), dtype=float)
 
 
 def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: float
@@ -178,11 +195,15 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         return np.where(count > 0, np.exp(log_sum / np.maximum(count, 1)), np.nan)
 
 
-def proximity(a: Vec | None, b: Vec | None, sigma: float) -> float | None:
-    if a is None or b is None:
-        return None
-    with np.errstate(over="ignore"):  # places 1e308 apart are infinitely far: proximity 0
-        return gaussian(float(np.linalg.norm(np.subtract(a, b))), sigma)
+def proximities(a: Sequence[Vec | None], b: Sequence[Vec | None], sigma: float) -> np.ndarray:
+    """Eq. 6.1 of the distance of every pair of places, NaN where one is unknown."""
+    def stack(places):
+        return np.array([p if p is not None else (np.nan,) * 3 for p in places],
+                        dtype=float).reshape(len(places), 3)
+
+    with np.errstate(over="ignore", invalid="ignore"):  # places 1e308 apart: proximity 0
+        distance = np.linalg.norm(stack(a)[:, None, :] - stack(b)[None, :, :], axis=-1)
+        return np.exp(-((distance / (2 * sigma)) ** 2))
 
 
 # --- calibration: how alike is "the same", learnt from the observations ---------------------
@@ -236,6 +257,59 @@ class Spread:
                 - math.lgamma(shape))
 
 
+# the surprise axis in log steps, for the learnt spreads of different objects
+EDGES = np.logspace(-4.0, 3.0, 71)  # 1e-4 .. 1e3, ten steps a decade
+CENTRES = np.sqrt(EDGES[:-1] * EDGES[1:])
+
+
+@dataclass(eq=False)
+class Histogram:
+    """The distribution of the surprise of pairs of different objects, learnt as a slowly
+    forgetting histogram over log steps: its lower tail (different objects that happen to
+    look alike, twins) is what decides "moved here" against "a new object", and no simple
+    family fits it (a Gamma fitted to the bulk makes a look-alike hundreds of times likelier
+    to be the same object than it is)."""
+
+    weight: float
+    counts: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.counts = np.asarray(self.counts, dtype=float)
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, Histogram) and self.weight == other.weight
+                and np.array_equal(self.counts, other.counts))
+
+    @classmethod
+    def around(cls, similarity: float, weight: float, shape: float) -> Histogram:
+        """A Gamma's shape, worth `weight` observations: a start the data outweigh."""
+        mean = surprise(similarity)
+        scale = mean / shape
+        cdf = gammainc(shape, EDGES / scale)
+        return cls(weight, weight * np.diff(cdf) / max(cdf[-1] - cdf[0], 1e-12))
+
+    def learn(self, u: float, memory: float, weight: float = 1.0) -> None:
+        """Take in one value, counted `weight` times; beyond `memory` the past fades."""
+        if weight <= 0:
+            return
+        if self.weight + weight > memory:
+            self.counts *= (memory - weight) / self.weight
+        self.counts[_step(u)] += weight
+        self.weight = float(self.counts.sum())
+
+    def log_density(self, u):
+        """Smoothed over neighbouring steps, never quite 0 (a value not met yet is rare, not
+        impossible)."""
+        counts = np.convolve(self.counts, [0.25, 0.5, 0.25], mode="same")
+        share = (counts + 1e-3 * max(self.weight, 1.0) / len(counts)) / (
+            counts.sum() + 1e-3 * max(self.weight, 1.0))
+        return np.log(share / np.diff(EDGES))[_step(u)]
+
+
+def _step(u):
+    return np.clip(np.searchsorted(EDGES, u, side="right") - 1, 0, len(CENTRES) - 1)
+
+
 @dataclass
 class Cue:
     """One kind of evidence (looks alike, is at the same place) as a likelihood ratio: how
@@ -244,25 +318,26 @@ class Cue:
     sensors instead of a fixed threshold (the thesis learnt its weights offline, 6.2.3)."""
 
     same: Spread
-    different: Spread
+    different: Histogram | Spread
 
     def odds(self, similarity):
         """The likelihood ratio of a similarity (or of an array of them, NaN or None where
-        there is nothing to compare: no evidence either way, odds 1)."""
+        there is nothing to compare: no evidence either way, odds 1). Nearer is never less
+        "the same" than farther: the ratio is made non-increasing in the surprise."""
         given = np.asarray(similarity, dtype=float)
-        u = np.maximum(surprise(given), self._peak())
-        log_odds = self.same.log_density(u) - self.different.log_density(u)
+        ratio = self.same.log_density(CENTRES) - self.different.log_density(CENTRES)
+        ratio = np.maximum.accumulate(ratio[::-1])[::-1]
+        u = surprise(np.where(np.isnan(given), 1.0, given))
+        log_odds = np.interp(np.log(u), np.log(CENTRES), ratio)
         odds = np.where(np.isnan(given), 1.0,
                         np.exp(np.clip(log_odds, -LOG_ODDS_LIMIT, LOG_ODDS_LIMIT)))
         return float(odds) if odds.ndim == 0 else odds
 
-    def _peak(self) -> float:
-        """Where the ratio of the two Gammas peaks: nearer than that is no less "the same"
-        (the ratio of two Gammas falls again towards 0 when the same-object one has the larger
-        shape: an artefact, not evidence)."""
-        (a_s, t_s), (a_d, t_d) = self.same.gamma(), self.different.gamma()
-        rate = 1 / t_s - 1 / t_d
-        return max((a_s - a_d) / rate, U_MIN) if rate > 0 and a_s > a_d else U_MIN
+
+# How alike different objects look is learnt from the pairs of clusters of each scene (sure
+# to be different objects), whose lower tail a histogram follows; how near another object
+# lies from its places is learnt from the decisions, a Gamma (_learn).
+DIFFERENT: dict[str, type] = {"look": Histogram, "place": Spread}
 
 
 @dataclass
@@ -274,34 +349,40 @@ class Calibration:
 
     @classmethod
     def prior(cls, params: Parameters) -> Calibration:
-        def cue(same: float, different: float) -> Cue:
+        def cue(same: float, different: float, kind: type) -> Cue:
             # one object seen twice: a chi-squared-like spread from 0; two objects: rarely
             # anywhere near identical
             return Cue(Spread.around(same, params.prior_weight, shape=1.5),
-                       Spread.around(different, params.prior_weight, shape=4.0))
+                       kind.around(different, params.prior_weight, shape=4.0))
 
-        return cls(look=cue(params.look_same, params.look_different),
-                   place=cue(params.place_same, params.place_different))
+        return cls(look=cue(params.look_same, params.look_different, DIFFERENT["look"]),
+                   place=cue(params.place_same, params.place_different, DIFFERENT["place"]))
 
     def to_document(self) -> dict:
-        return {name: {side: vars(getattr(getattr(self, name), side)).copy()
+        return {name: {side: {k: v.tolist() if isinstance(v, np.ndarray) else v
+                              for k, v in vars(getattr(getattr(self, name), side)).items()}
                        for side in ("same", "different")} for name in ("look", "place")}
 
     @classmethod
     def from_document(cls, doc: dict) -> Calibration:
-        return cls(**{name: Cue(Spread(**doc[name]["same"]), Spread(**doc[name]["different"]))
-                      for name in ("look", "place")})
+        return cls(**{name: Cue(Spread(**doc[name]["same"]), kind(**doc[name]["different"]))
+                      for name, kind in DIFFERENT.items()})
 
 
-def explanations(look: float, place: float, in_view: bool, params: Parameters) -> dict:
+def explanations(look: float, place: float, in_view: bool, params: Parameters,
+                 other: float = 1.0) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
-    being another object, from the odds of "looks the same" and "is at the same place"."""
+    being another object, from the odds of "looks the same" (as it last looked; `other`: as
+    the best of its other known looks) and "is at the same place". Turned to a side seen
+    before is likelier than to a side never seen."""
+    seen = max(look, other)
+    move = seen * params.prior_move
     if not in_view:  # its old place is not seen now: it can only have been moved here
-        return {Explanation.MOVE: look * params.prior_move}
+        return {Explanation.MOVE: move}
     return {
         Explanation.STAY: look * place,
-        Explanation.MOVE: look * params.prior_move,
-        Explanation.NEWVIEW: place * params.prior_newview,
+        Explanation.MOVE: move,
+        Explanation.NEWVIEW: place * params.prior_newview * max(other, 1.0),
     }
 
 
@@ -316,11 +397,11 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     # the cues of every pair, then their odds at once
     looked = looks([_by_type(o.evidence) for o in new],
                    [_by_type(k.last.evidence) for k in known], params.evidence_floor)
-    places = np.array([[proximity(observation.position, candidate.last.position,
-                                  params.proximity_sigma) for candidate in known]
-                       for observation in new], dtype=float)
+    places = proximities([o.position for o in new], [k.last.position for k in known],
+                         params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
     place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
+    other_odds, other_look = _other_looks(new, known, calibration, params)
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
@@ -328,7 +409,7 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         row = []
         for j, candidate in enumerate(known):
             ways = explanations(float(look_odds[i, j]), float(place_odds[i, j]),
-                                candidate.in_view, params)
+                                candidate.in_view, params, float(other_odds[i, j]))
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
@@ -348,44 +429,74 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
             continue
         matched.add(j)
         explanation = best[i, j]
+        look = (known[j].last.key if look_odds[i, j] >= max(other_odds[i, j], 1.0)
+                else other_look[i][j])
+        alike = np.maximum(look_odds[i], other_odds[i]) >= params.lookalike_odds
         decisions.append(Decision(observation.key, known[j].key, explanation,
                                   _probability(alternatives, known[j].key, explanation),
-                                  alternatives))
+                                  alternatives, look,
+                                  [known[k].key for k in np.flatnonzero(alike) if k != j]))
     for j, candidate in enumerate(known):
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
-    _learn(calibration, decisions[:len(new)], assigned, looked, places, params)
+    _learn(calibration, new, decisions[:len(new)], assigned, looked, places, params)
     return decisions
 
 
-def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
-           looked: np.ndarray, places: np.ndarray, params: Parameters) -> None:
-    """Teach the calibration with the decisions (soft EM): a stay shows how alike and how
-    near one object seen twice is, each cue's value counted by how sure the current model is
-    that it belongs to the same object rather than to a turned (newview) or moved one, so a
-    wrong stay cannot widen what "the same" means; every other pairing of a confidently
-    explained observation shows two different objects."""
+def _other_looks(new: Sequence[Observation], known: Sequence[Known],
+                 calibration: Calibration, params: Parameters) -> tuple[np.ndarray, list]:
+    """For every (new, known) pair, the odds that the new one looks the same as the best of
+    the known object's other looks (1 where it has none), and that look's key when those
+    odds are above 1 (else None)."""
+    odds = np.ones((len(new), len(known)))
+    keys: list[list] = [[None] * len(known) for _ in new]
+    others = [(j, other) for j, k in enumerate(known) for other in k.others]
+    if not others or not new:
+        return odds, keys
+    looked = looks([_by_type(o.evidence) for o in new], [_by_type(o.evidence) for _, o in others],
+                   params.evidence_floor)
+    each = calibration.look.odds(looked)
+    for c, (j, other) in enumerate(others):
+        for i in np.flatnonzero(each[:, c] > odds[:, j]):
+            odds[i, j] = each[i, c]
+            keys[i][j] = other.key
+    return odds, keys
+
+
+def _learn(calibration: Calibration, new: Sequence[Observation], decisions: list[Decision],
+           assigned: dict[int, int], looked: np.ndarray, places: np.ndarray,
+           params: Parameters) -> None:
+    """Teach the calibration (soft EM, thesis 6.2.3 learnt offline): a stay shows how alike
+    and how near one object seen twice is, each cue's value counted by how sure the current
+    model is that it belongs to the same object rather than to a turned (newview) or moved
+    one, so a wrong stay cannot widen what "the same" means. Two clusters of one scene are
+    two different objects for sure: every such pair shows how alike and how near different
+    objects are, with no decision in the loop to teach a mistake back to the model."""
     memory = params.memory
+    with np.errstate(invalid="ignore"):
+        look_u, place_u = surprise(looked), surprise(places)
     for i, decision in enumerate(decisions):
-        for j in range(looked.shape[1]):
-            look = None if np.isnan(looked[i, j]) else float(looked[i, j])
-            place = None if np.isnan(places[i, j]) else float(places[i, j])
-            if assigned.get(i) == j:
-                if decision.explanation is Explanation.STAY:
-                    if look is not None:
-                        odds = calibration.look.odds(look) / params.prior_newview
-                        calibration.look.same.learn(surprise(look), memory, odds / (1 + odds))
-                    if place is not None:
-                        odds = calibration.place.odds(place) / params.prior_move
-                        calibration.place.same.learn(surprise(place), memory, odds / (1 + odds))
-                continue
-            if decision.probability < params.confident:
-                continue
-            if look is not None:
-                calibration.look.different.learn(surprise(look), memory)
-            if place is not None:
-                calibration.place.different.learn(surprise(place), memory)
+        j = assigned.get(i)
+        if j is not None and decision.explanation is Explanation.STAY:
+            if not math.isnan(look := float(look_u[i, j])):
+                odds = calibration.look.odds(looked[i, j]) / params.prior_newview
+                calibration.look.same.learn(look, memory, odds / (1 + odds))
+            if not math.isnan(place := float(place_u[i, j])):
+                odds = calibration.place.odds(places[i, j]) / params.prior_move
+                calibration.place.same.learn(place, memory, odds / (1 + odds))
+        if decision.probability >= params.confident:
+            for k in np.flatnonzero(~np.isnan(place_u[i])):
+                if k != j:
+                    calibration.place.different.learn(float(place_u[i, k]), memory)
+    if len(new) < 2:
+        return
+    pairs = np.triu_indices(len(new), 1)
+    groups = [_by_type(o.evidence) for o in new]
+    with np.errstate(invalid="ignore"):
+        alike = surprise(looks(groups, groups, params.evidence_floor)[pairs])
+    for u in alike[~np.isnan(alike)]:
+        calibration.look.different.learn(float(u), memory)
 
 
 def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[int, int]:

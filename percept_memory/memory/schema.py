@@ -74,7 +74,8 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("names", ASCENDING)], name="names"),
         IndexModel([("region", ASCENDING), ("state", ASCENDING)], name="region_state"),
         IndexModel([("last_seen", DESCENDING)], name="seen"),
-        # a map's objects by x then y (metres, any finite value): those a view may contain
+        # a map's objects by x then y (metres, any finite value): its places, read by its
+        # consolidator (memory/places.py) and drawn on the map page
         IndexModel([("map", ASCENDING), ("x", ASCENDING), ("y", ASCENDING)], name="map_place"),
         # a map's most recently seen objects (memory/consolidation.py: unseen candidates)
         IndexModel([("map", ASCENDING), ("last_seen", DESCENDING), ("last_cluster", DESCENDING)],

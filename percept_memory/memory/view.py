@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .types import Scene, Vec3
+from .types import Scene
 
 MAX_RANGE = 3.5  # m: a Kinect's depth is unreliable beyond this
 
@@ -38,18 +38,21 @@ class View:
         r = self.max_range
         return (float(x - r), float(y - r)), (float(x + r), float(y + r))
 
-    def sees(self, point: Vec3 | None) -> bool | None:
-        """True or False, or None when the scene does not say where its camera looked."""
-        if point is None:
-            return None
-        if self.region is not None:
-            return self.region.contains(point)
+    def sees(self, points: np.ndarray) -> np.ndarray:
+        """For each point (rows of x, y, z; NaN for an unknown place), whether the view saw its
+        place; all False when the scene does not say where its camera looked."""
+        points = np.asarray(points, dtype=float).reshape(-1, 3)
+        region = self.region
+        if region is not None and region.center is not None:
+            return np.linalg.norm(points - region.center, axis=1) <= region.radius
+        if region is not None:
+            return np.all((points >= region.box_min) & (points <= region.box_max), axis=1)
         if not self.known:
-            return None
-        x, y, z = (self.to_camera @ np.array([*point, 1.0]))[:3]
-        if not 0.05 < z <= self.max_range:
-            return False
-        (fx, fy), (cx, cy) = self.camera.focal, self.camera.principal_point
-        u, v = fx * x / z + cx, fy * y / z + cy
-        return bool(0 <= u < self.camera.width and 0 <= v < self.camera.height)
-
+            return np.zeros(len(points), dtype=bool)
+        local = points @ self.to_camera[:3, :3].T + self.to_camera[:3, 3]
+        x, y, z = local.T
+        ahead = (z > 0.05) & (z <= self.max_range)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            (fx, fy), (cx, cy) = self.camera.focal, self.camera.principal_point
+            u, v = fx * x / z + cx, fy * y / z + cy
+        return ahead & (u >= 0) & (u < self.camera.width) & (v >= 0) & (v < self.camera.height)

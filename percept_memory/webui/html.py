@@ -4,8 +4,8 @@ naming it, never a 500).
 
 Every page sends a Content-Security-Policy that allows nothing but this site's own images and
 style sheet; the live page, the playback page, the 3D views (`view=3d`) and the API page
-(Swagger UI) alone may also run this site's scripts (files, never inline) and fetch from it.
-No page sends a Referer to the links it leads to.
+(Swagger UI) alone may also run this site's scripts (files, never inline) and fetch from it, a
+scene page with images its viewer script. No page sends a Referer to the links it leads to.
 Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
 """
 
@@ -35,6 +35,8 @@ def content_security_policy(**allowed: str) -> str:
 CSP = content_security_policy()
 SCRIPT_CSP = content_security_policy(script_src="'self'", connect_src="'self'")
 """The policy of a page that runs this site's own scripts (static files, never inline)."""
+VIEWER_CSP = content_security_policy(script_src="'self'")
+"""The policy of a scene page with images: its viewer script runs, and fetches nothing."""
 API_DOCS_CSP = content_security_policy(script_src="'self'", connect_src="'self'",
                                        img_src="'self' data:")
 """The policy of the API page (/docs): Swagger UI draws its icons from data: URLs."""
@@ -46,7 +48,8 @@ LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 
 
 templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
 templates.env.filters["time"] = render.time_of
-templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields)
+templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields,
+                             open_fields=render.OPEN_FIELDS)
 
 
 class PageError(Exception):

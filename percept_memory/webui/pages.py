@@ -1,8 +1,9 @@
 """The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
 its image, cluster boxes, log, relations and annotations, and a cluster; `mount_pages` adds
 them and the pages of the other modules (scene log, object history, search, map, annotators,
-enrichment, live, playback). Server-rendered, no JavaScript (html.py: what pages share)
-but for the 3D view a scene or map page adds with `view=3d` (scene3d.py), the playback's
+enrichment, live, playback). Server-rendered, no JavaScript (html.py: what pages share) but
+for the scene's images, whose small script switches what is drawn on them and zooms
+(viewer.py), the 3D view a scene or map page adds with `view=3d` (scene3d.py), the playback's
 steps without reload and the live page's updates.
 """
 
@@ -35,8 +36,9 @@ from . import (
     scene3d,
     scene_log,
     search,
+    viewer,
 )
-from .html import CSP, HERE, LIST_FIELDS, SCRIPT_CSP, PageError, page, parse_id
+from .html import CSP, HERE, LIST_FIELDS, SCRIPT_CSP, VIEWER_CSP, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
@@ -90,23 +92,29 @@ def page_routes(store: MemoryStore) -> APIRouter:
         plan = None if scene.images else await run_in_threadpool(_plan, store, scene)
         solid = await run_in_threadpool(scene3d.scene_view, scene, names) if in_3d else None
         return page(request, "scene.html", {
-            "scene": scene, "names": names, "events": explained, "boxes": _boxes(scene),
+            "scene": scene, "names": names, "events": explained,
+            "overlays": viewer.overlays(scene, names),
             "log": render.log_by_annotator(scene.log), "plan": plan, "view3d": solid,
-        }, policy=SCRIPT_CSP if in_3d else CSP)
+        }, policy=SCRIPT_CSP if in_3d else VIEWER_CSP if scene.images else CSP)
 
     @router.get("/clusters/{cluster_id}")
     async def cluster_page(request: Request, cluster_id: str) -> HTMLResponse:
         cluster = await stored(store.get_cluster, cluster_id, "cluster")
 
-        def load() -> tuple[dict | None, dict | None, list[dict]]:
+        def load() -> tuple[dict | None, dict | None, list[dict], dict]:
             scene = store.scenes.find_one({"_id": cluster.scene_id}, LIST_FIELDS)
             believed = objects.find_one({"_id": cluster.object_id}) if cluster.object_id else None
-            return scene, believed, list(events.find({"cluster_id": cluster.id}))
+            explained = list(events.find({"cluster_id": cluster.id}))
+            considered = [a["object_id"] for e in explained for a in e.get("alternatives", [])
+                          if a.get("object_id")]
+            names = {o["_id"]: o.get("name") for o in objects.find({"_id": {"$in": considered}},
+                                                                    {"name": 1})}
+            return scene, believed, explained, names
 
-        scene, believed, explained = await run_in_threadpool(load)
+        scene, believed, explained, names = await run_in_threadpool(load)
         return page(request, "cluster.html", {
             "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
-            "object": believed, "events": explained,
+            "object": believed, "events": explained, "names": names,
         })
 
     @router.get("/img/scenes/{scene_id}/images/{name}")
@@ -140,16 +148,6 @@ def page_routes(store: MemoryStore) -> APIRouter:
 async def _png(image: Image, max_side: int | None = None) -> Response:
     data = await run_in_threadpool(display_png, image, max_side)
     return Response(data, media_type="image/png", headers=CACHED)
-
-
-def _boxes(scene: Scene) -> dict[str, list[tuple[int, ImageROI]]]:
-    """Per scene image, the numbered (from 1, in cluster order) regions of the clusters."""
-    boxes: dict[str, list[tuple[int, ImageROI]]] = {name: [] for name in scene.images}
-    for number, cluster in enumerate(scene.clusters, 1):
-        roi = cluster.hypothesis_of(ImageROI)
-        if roi is not None and roi.image in boxes:
-            boxes[roi.image].append((number, roi))
-    return boxes
 
 
 @dataclass

@@ -26,7 +26,7 @@ from percept_memory.queries.model import Playback
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.results import Frame
 
-from .belief_map import SECOND, drawn_belief, map_names, moment_of
+from .belief_map import SECOND, drawn_belief, map_names, moment_of, recorded_span
 from .html import SCRIPT_CSP, PageError, page, parse_id
 
 MARKS = 500  # of each kind on the timeline: the sequence's first failures, the object's events
@@ -75,7 +75,8 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
                 "names": _names(store, [*shown, followed]),
                 "failure": _step(engine, asked, frame, "failure"),
                 "event": followed and _step(engine, asked, frame, "event", followed),
-                "belief": drawn_belief(store, engine, frame.map, frame.time),
+                "belief": drawn_belief(store, engine, frame.map, frame.time,
+                                       recorded_span(store, frame.map)[0]),
                 "marks": _marks(store, asked, frame, followed), "strip": STRIP,
                 "second": SECOND,
             }

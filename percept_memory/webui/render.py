@@ -1,7 +1,10 @@
 """What the templates show of stored values, decided by their types, so any annotation type,
 present or future (or unknown: kept as `Unknown`), renders without an edit here: numbers in
 [0, 1] named like a confidence as bars, name -> share maps as bar lists, arrays as small
-charts, web links as links, nested models and other maps as field tables, the rest as text."""
+charts, web links as links, nested models and other maps as collapsible field tables, lists
+of them (a RoboSherlock contour of rs.cv.Point) as one collapsible table, the rest as text.
+Nothing is shown as a Python repr: a foreign document's ids and parents are hidden, lists of
+scalars are joined."""
 
 from __future__ import annotations
 
@@ -19,7 +22,9 @@ from percept_memory.memory.types import LogLine
 
 CHART_WIDTH, CHART_HEIGHT, CHART_POINTS = 240, 48, 120
 SHARE_WORDS = ("confidence", "probability", "ratio", "score")
-HIDDEN_FIELDS = {"id", "_id", "_type", "source"}
+HIDDEN_FIELDS = {"id", "_id", "_type", "_parent", "source"}
+OPEN_FIELDS = 4  # a nested table of at most this many fields shows open
+MAX_ROWS, MAX_ITEMS = 20, 40  # rows of a list of records, items of a list of scalars shown
 
 
 @dataclass
@@ -27,8 +32,18 @@ class Shown:
     """One field as the page shows it: `kind` picks the template's rendering of `value`."""
 
     name: str
-    kind: str  # text | bar | bars | chart | links (text, is a web link) | fields
+    kind: str  # text | bar | bars | chart | links (text, is a web link) | fields | records
     value: Any
+    summary: str = ""  # what a collapsed fields or records table holds
+
+
+@dataclass
+class Records:
+    """A list of documents as one table: a column per field any of the first rows has."""
+
+    columns: list[str]
+    rows: list[dict[str, Shown]]
+    more: int  # rows not shown
 
 
 @dataclass
@@ -51,9 +66,13 @@ def type_name(value: Any) -> str:
 
 
 def shown_fields(value: Any) -> list[Shown]:
-    """The fields of a model (or of an Unknown's stored document), each with its rendering."""
-    items = value.fields.items() if isinstance(value, Unknown) else (
-        (name, getattr(value, name)) for name in type(value).model_fields)
+    """The fields of a model, an Unknown's stored document or a map, each with its rendering."""
+    if isinstance(value, Unknown):
+        items = value.fields.items()
+    elif isinstance(value, Mapping):
+        items = ((str(k), v) for k, v in value.items())
+    else:
+        items = ((name, getattr(value, name)) for name in type(value).model_fields)
     return [shown(name, field) for name, field in items
             if name not in HIDDEN_FIELDS and not _empty(field)]
 
@@ -68,11 +87,21 @@ def shown(name: str, value: Any) -> Shown:
         return Shown(name, "chart", chart(value))
     if _has_links(value):
         return Shown(name, "links", [(v, _is_web_link(v)) for v in value])
-    if isinstance(value, BaseModel | Unknown):
-        return Shown(name, "fields", shown_fields(value))
-    if isinstance(value, Mapping) and value:  # key-values, e.g. a product's properties
-        return Shown(name, "fields", [shown(str(k), v) for k, v in value.items()])
+    if _is_document(value):
+        fields = shown_fields(value)
+        count, named = f"{len(fields)} fields", _type_of(value)
+        return Shown(name, "fields", fields, f"{named}, {count}" if named else count)
+    if isinstance(value, list | tuple) and value and all(map(_is_document, value)):
+        return Shown(name, "records", records(value),
+                     f"{len(value)} × {_type_of(value[0]) or 'documents'}")
     return Shown(name, "text", _text(value))
+
+
+def records(documents: list | tuple) -> Records:
+    """The first MAX_ROWS documents as rows: a contour may hold thousands of points."""
+    rows = [{item.name: item for item in shown_fields(d)} for d in documents[:MAX_ROWS]]
+    columns = list(dict.fromkeys(name for row in rows for name in row))
+    return Records(columns, rows, len(documents) - len(rows))
 
 
 def chart(values: np.ndarray) -> Chart:
@@ -113,6 +142,19 @@ def _empty(value: Any) -> bool:
     return value is None or (isinstance(value, str | list | tuple | dict) and not value)
 
 
+def _is_document(value: Any) -> bool:
+    """A model, an Unknown, or a map: anything shown as a table of fields."""
+    return isinstance(value, BaseModel | Unknown) or (isinstance(value, Mapping) and bool(value))
+
+
+def _type_of(document: Any) -> str | None:
+    """A document's type name (a foreign one's `_type`); None for a plain map."""
+    if isinstance(document, Mapping):
+        named = document.get("_type")
+        return named if isinstance(named, str) else None
+    return type_name(document)
+
+
 def _is_share(name: str, value: Any) -> bool:
     return (any(word in name.lower() for word in SHARE_WORDS) and _is_number(value)
             and 0 <= value <= 1)
@@ -145,4 +187,10 @@ def _text(value: Any) -> str:
         return "(" + ", ".join(f"{v:.3f}" for v in value) + ")"
     if isinstance(value, np.ndarray):
         return f"{value.dtype} array {value.shape}"
+    if isinstance(value, tuple | list):
+        shown = ", ".join(_text(v) for v in value[:MAX_ITEMS])
+        return shown + (f", … ({len(value) - MAX_ITEMS} more)" if len(value) > MAX_ITEMS else "")
+    if isinstance(value, Mapping):  # in a list of mixed items
+        return "{" + ", ".join(f"{k}: {_text(v)}" for k, v in value.items()
+                               if k not in HIDDEN_FIELDS) + "}"
     return str(value)

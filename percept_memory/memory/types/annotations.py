@@ -5,21 +5,20 @@ querying by its fields follow from its annotations. A class may also say
 - `labels()`: the names it gives the object (searchable, used to name objects);
 - `texts()`: free text to make searchable;
 - `similarity(a, b)`: how alike two observations look by this kind of evidence, in [0, 1]
-  (identity resolution combines the kinds two observations share, thesis 6.1.2).
+  (identity resolution combines the kinds two observations share, thesis 6.1.2); or, faster,
+  `similarities(a, b)` for two lists at once, a matrix (the built-in types: compare.py).
 """
 
 from __future__ import annotations
 
 import hashlib
-import math
-import re
-from functools import lru_cache
 from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 from bson import ObjectId
 from pydantic import AliasChoices, Field
 
+from . import compare
 from .base import Id, Identifiable, Model, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
@@ -47,44 +46,6 @@ class Annotation(Identifiable):
         return None
 
 
-def _same_label(a: str | None, b: str | None) -> float | None:
-    if not a or not b:
-        return None
-    return 1.0 if a.strip().casefold() == b.strip().casefold() else 0.0
-
-
-def _bhattacharyya(p: dict[str, float], q: dict[str, float]) -> float | None:
-    """Overlap of two discrete distributions given as name -> weight, normalised here."""
-    total_p, total_q = sum(p.values()), sum(q.values())
-    if total_p <= 0 or total_q <= 0:
-        return None
-    shared = sorted(p.keys() & q.keys())  # in order: the same float sum in any process
-    return min(1.0, sum(math.sqrt(p[k] / total_p * q[k] / total_q) for k in shared))
-
-
-def _pairwise(a: list, b: list, kind, prepare, combine) -> np.ndarray:
-    """A similarity matrix computed block by block: items compare only with items of the same
-    `kind` (e.g. the same histogram shape), `prepare` turns each into a vector (None: nothing to
-    compare) and `combine` compares two stacks of them; NaN where nothing compares."""
-    out = np.full((len(a), len(b)), np.nan)
-    groups: dict = {}
-    for side, items in enumerate((a, b)):
-        for index, item in enumerate(items):
-            vector = prepare(item)
-            if vector is not None:
-                groups.setdefault(kind(item), ([], []))[side].append((index, vector))
-    for rows, cols in groups.values():
-        if rows and cols:
-            block = combine(np.stack([v for _, v in rows]), np.stack([v for _, v in cols]))
-            out[np.ix_([i for i, _ in rows], [j for j, _ in cols])] = block
-    return out
-
-
-def _one(matrix: np.ndarray) -> float | None:
-    value = float(matrix[0, 0])
-    return None if math.isnan(value) else value
-
-
 def _sqrt_distribution(histogram) -> np.ndarray | None:
     p = np.clip(histogram.histogram.astype(float).ravel(), 0, None)
     total = p.sum()
@@ -95,15 +56,6 @@ def _unit_vector(feature) -> np.ndarray | None:
     u = feature.vector.astype(float).ravel()
     norm = np.linalg.norm(u)
     return u / norm if norm > 0 else None
-
-
-_WORD = re.compile(r"[^\W_]+")
-
-
-@lru_cache(maxsize=65536)
-def _words(text: str) -> frozenset[str]:
-    """The words of a text (kept: identity compares the same texts again and again)."""
-    return frozenset(_WORD.findall(text.casefold()))
 
 
 @stored_type("pm.annotation.Location")
@@ -134,10 +86,17 @@ class Classification(Annotation):
         return [self.class_name]
 
     @staticmethod
-    def similarity(a: Classification, b: Classification) -> float | None:
-        if a.confidences and b.confidences:
-            return _bhattacharyya(a.confidences, b.confidences)
-        return _same_label(a.class_name, b.class_name)
+    def similarities(a: list[Classification], b: list[Classification]) -> np.ndarray:
+        """The overlap of the per-class confidences where both give them, else whether the
+        verdicts are the same class."""
+        out = compare.same_labels([x.class_name for x in a], [y.class_name for y in b])
+        both = np.array([bool(x.confidences) for x in a])[:, None] & np.array(
+            [bool(y.confidences) for y in b])[None, :]
+        if both.any():
+            overlap = compare.bhattacharyya([x.confidences for x in a],
+                                            [y.confidences for y in b])
+            out = np.where(both, overlap, out)
+        return out
 
 
 @stored_type("pm.annotation.Detection", aliases=("rs.annotation.Detection",))
@@ -154,8 +113,8 @@ class Detection(Annotation):
         return [self.name]
 
     @staticmethod
-    def similarity(a: Detection, b: Detection) -> float | None:
-        return _same_label(a.name, b.name)
+    def similarities(a: list[Detection], b: list[Detection]) -> np.ndarray:
+        return compare.same_labels([x.name for x in a], [y.name for y in b])
 
 
 @stored_type("pm.annotation.Shape", aliases=("rs.annotation.Shape",))
@@ -169,8 +128,8 @@ class Shape(Annotation):
         return [self.shape]
 
     @staticmethod
-    def similarity(a: Shape, b: Shape) -> float | None:
-        return _same_label(a.shape, b.shape)
+    def similarities(a: list[Shape], b: list[Shape]) -> np.ndarray:
+        return compare.same_labels([x.shape for x in a], [y.shape for y in b])
 
 
 @stored_type("pm.annotation.SemanticColor")
@@ -183,11 +142,8 @@ class SemanticColor(Annotation):
         return [name for name, share in self.ratios.items() if share >= 0.2]
 
     @staticmethod
-    def similarity(a: SemanticColor, b: SemanticColor) -> float | None:
-        if not a.ratios or not b.ratios:
-            return None
-        shared = sorted(a.ratios.keys() & b.ratios.keys())  # the same sum in any process
-        return sum(min(a.ratios[k], b.ratios[k]) for k in shared)
+    def similarities(a: list[SemanticColor], b: list[SemanticColor]) -> np.ndarray:
+        return compare.shared_share([x.ratios for x in a], [y.ratios for y in b])
 
 
 @stored_type("pm.annotation.ColorHistogram")
@@ -198,14 +154,10 @@ class ColorHistogram(Annotation):
     space: str = "HS"
 
     @staticmethod
-    def similarity(a: ColorHistogram, b: ColorHistogram) -> float | None:
-        return _one(ColorHistogram.similarities([a], [b]))
-
-    @staticmethod
     def similarities(a: list[ColorHistogram], b: list[ColorHistogram]) -> np.ndarray:
         """Bhattacharyya overlap of every pair at once (sqrt p . sqrt q of the normalised
         histograms): identity compares every new observation with every candidate."""
-        return _pairwise(a, b, lambda h: (h.space, h.histogram.shape), _sqrt_distribution,
+        return compare.pairwise(a, b, lambda h: (h.space, h.histogram.shape), _sqrt_distribution,
                          lambda p, q: np.minimum(p @ q.T, 1.0))
 
 
@@ -217,13 +169,9 @@ class FeatureVector(Annotation):
     vector: NDArray
 
     @staticmethod
-    def similarity(a: FeatureVector, b: FeatureVector) -> float | None:
-        return _one(FeatureVector.similarities([a], [b]))
-
-    @staticmethod
     def similarities(a: list[FeatureVector], b: list[FeatureVector]) -> np.ndarray:
         """Cosine of every pair at once (0 for opposite directions)."""
-        return _pairwise(a, b, lambda f: (f.name, f.vector.shape), _unit_vector,
+        return compare.pairwise(a, b, lambda f: (f.name, f.vector.shape), _unit_vector,
                          lambda u, v: np.clip(u @ v.T, 0.0, 1.0))
 
 
@@ -240,11 +188,8 @@ class Text(Annotation):
         return [self.text]
 
     @staticmethod
-    def similarity(a: Text, b: Text) -> float | None:
-        wa, wb = _words(a.text), _words(b.text)
-        if not wa or not wb:
-            return None
-        return len(wa & wb) / len(wa | wb)
+    def similarities(a: list[Text], b: list[Text]) -> np.ndarray:
+        return compare.shared_words([x.text for x in a], [y.text for y in b])
 
 
 @stored_type("pm.annotation.Logo")
@@ -261,8 +206,8 @@ class Logo(Annotation):
         return [self.brand]
 
     @staticmethod
-    def similarity(a: Logo, b: Logo) -> float | None:
-        return _same_label(a.brand, b.brand)
+    def similarities(a: list[Logo], b: list[Logo]) -> np.ndarray:
+        return compare.same_labels([x.brand for x in a], [y.brand for y in b])
 
 
 ProductValue = str | bool | int | float
@@ -286,8 +231,8 @@ class Product(Annotation):
         return [f"{key} {value}" for key, value in self.properties.items()]
 
     @staticmethod
-    def similarity(a: Product, b: Product) -> float | None:
-        return _same_label(a.name, b.name)
+    def similarities(a: list[Product], b: list[Product]) -> np.ndarray:
+        return compare.same_labels([x.name for x in a], [y.name for y in b])
 
 
 @stored_type("pm.annotation.Barcode")
@@ -301,8 +246,8 @@ class Barcode(Annotation):
         return [self.code]
 
     @staticmethod
-    def similarity(a: Barcode, b: Barcode) -> float | None:
-        return _same_label(a.code, b.code)
+    def similarities(a: list[Barcode], b: list[Barcode]) -> np.ndarray:
+        return compare.same_labels([x.code for x in a], [y.code for y in b])
 
 
 @stored_type("pm.lookup.Provenance")

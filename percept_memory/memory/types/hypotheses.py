@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from . import compare
 from .base import Model, stored_type
 from .json_forms import image_limit
 from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3, check_pixels
@@ -38,14 +40,12 @@ class ImageROI(Hypothesis):
         return crop
 
     @staticmethod
-    def similarity(a: ImageROI, b: ImageROI) -> float | None:
+    def similarities(a: list[ImageROI], b: list[ImageROI]) -> np.ndarray:
         """The thesis' g (eq. 6.1) of the Hamming distance of the perceptual hashes, sigma
         calibrated on the kitchen week's crops: the same object's hashes lie a median 4 bits
         apart (95 % within 12), different objects' a median 28 (95 % beyond 22)."""
-        if a.phash is None or b.phash is None:
-            return None
-        distance = (int(a.phash, 16) ^ int(b.phash, 16)).bit_count()
-        return math.exp(-((distance / (2 * PHASH_SIGMA_BITS)) ** 2))
+        return compare.hash_nearness([x.phash for x in a], [y.phash for y in b],
+                                     PHASH_SIGMA_BITS)
 
 
 @stored_type("pm.hypothesis.PointCluster")

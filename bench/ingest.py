@@ -5,8 +5,11 @@ Scenes of 6 clusters x 20 annotations with 64 px crops cut from the real kitchen
 JSON batches POSTed on loopback to `pmem serve` running in its own process, not waiting for
 the belief: once with the server's own consolidator working beside (the default), once with
 it off (PMEM_CONSOLIDATOR=false, as when `pmem consolidate` runs elsewhere). Targets:
-in-process >= 2,000 clusters/s; HTTP >= 70 % of the in-process rate of the same run. All
-write to scratch databases on the same mongod, dropped afterwards.
+in-process >= 2,000 clusters/s; HTTP >= 70 % of the in-process rate of the same run. Both
+ratios are printed: `consolidator_apart` compares like with like (the in-process run stores
+scenes without consolidating them), `consolidator_in_server` is what a default `pmem serve`
+gives on the same cores, consolidating as it goes. All write to scratch databases on the
+same mongod, dropped afterwards.
 
 Usage: python bench/ingest.py [--scenes N] [--batch N] [--http-scenes N]
 """
@@ -121,19 +124,36 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
                 response.raise_for_status()
                 progress.advance(task, len(response.json()["scenes"]))
             seconds = time.perf_counter() - start
-            pending = client.get("/api/pipeline").json()["maps"][0]["pending"]
+            pending = _pending(client)
+            caught_up = _caught_up_s(client) if consolidator else None
     finally:
         server.terminate()
         server.wait(30)
     return {
         "consolidator_in_server": consolidator,
         "scenes_pending_at_the_end": pending,
+        # it gives way to ingest (memory/pipeline.py) and catches up after the burst
+        "belief_caught_up_s_after_the_end": caught_up,
         "scenes": count,
         "batch": batch,
         "request_mb": round(sum(map(len, bodies)) / len(bodies) / 2**20, 2),
         "clusters_per_s": round(count * CLUSTERS / seconds),
         "requests_per_s": round(len(bodies) / seconds, 2),
     }
+
+
+def _pending(client: httpx2.Client) -> int:
+    return client.get("/api/pipeline").json()["maps"][0]["pending"]
+
+
+def _caught_up_s(client: httpx2.Client, timeout: float = 600) -> float | None:
+    """Seconds until no scene is pending (None: not within the timeout)."""
+    start = time.perf_counter()
+    while _pending(client):
+        if time.perf_counter() - start > timeout:
+            return None
+        time.sleep(0.1)
+    return round(time.perf_counter() - start, 1)
 
 
 def _wait_until_up(client: httpx2.Client) -> None:
@@ -161,7 +181,9 @@ def main() -> None:
             with scratch_store() as store:
                 http[consolidator] = over_http(store.db.name, args.http_scenes, args.batch,
                                                image, progress, consolidator)
-    ratio = http[True]["clusters_per_s"] / local["clusters_per_s"]
+    ratios = {("consolidator_in_server" if inside else "consolidator_apart"):
+              round(http[inside]["clusters_per_s"] / local["clusters_per_s"], 3)
+              for inside in (True, False)}
     print_json({
         "benchmark": "ingest",
         "clusters_per_scene": CLUSTERS,
@@ -169,9 +191,9 @@ def main() -> None:
         "in_process": local,
         "http": http[True],
         "http_without_consolidator": http[False],
-        "http_to_in_process": round(ratio, 3),
+        "http_to_in_process": ratios,
         "http_target": 0.7,
-        "http_met": ratio >= 0.7,
+        "http_met": {name: ratio >= 0.7 for name, ratio in ratios.items()},
     })
 
 

@@ -237,3 +237,15 @@ def test_lookalikes_seen_side_by_side_are_never_merged(empty_store):
     left, right, later = _box("red", 0.3), _box("red", 0.7), _box("red", 3.5)
     consolidate_one_by_one(empty_store, [_looks(0.5, left, right, t=0), _looks(3.5, later, t=1)])
     assert empty_store.db.objects.count_documents({"map": "sides"}) == 2
+
+
+def test_an_objects_place_is_the_mean_of_its_observations_since_it_last_moved(empty_store):
+    seen = [_box("green", x) for x in (0.50, 0.53, 0.47, 0.50)]
+    moved = _box("green", 0.95)
+    consolidate_one_by_one(empty_store, [_looks(0.6, c, t=i) for i, c in enumerate(seen)])
+    (doc,) = empty_store.db.objects.find({"map": "sides"})
+    assert doc["position"][0] == pytest.approx(0.50) and doc["place_count"] == 4
+    consolidate_one_by_one(empty_store, [_looks(0.6, moved, t=9)])
+    doc = empty_store.db.objects.find_one({"_id": doc["_id"]})
+    assert empty_store.db.events.find_one({"cluster_id": moved.id})["explanation"] == "move"
+    assert doc["position"][0] == pytest.approx(0.95) and doc["place_count"] == 1

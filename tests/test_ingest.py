@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import base64
 import json
+from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
+from pymongo.errors import OperationFailure
+from pymongo.synchronous.client_session import ClientSession
 
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
-from percept_memory.ingest.service import IngestError, IngestService
+from percept_memory.ingest.service import CHUNK, IngestError, IngestService
 from percept_memory.memory.documents import assign_ids
 from percept_memory.memory.types import FeatureVector, Image, Scene
 
@@ -232,6 +236,64 @@ def test_a_stream_repeating_a_scene_across_batches_stores_it_once(store):
     assert store.scenes.count_documents({"timestamp": STAMP + 500}) == 1
 
 
+def test_a_batch_sent_in_chunks_stores_nothing_when_its_last_scene_is_invalid(store):
+    """The first chunks of a batch go to the server while the rest are validated; an invalid
+    scene after them abandons the transaction."""
+    batch = [valid_scene(seed=60 + i, timestamp=STAMP + 600 + i) for i in range(2 * CHUNK + 1)]
+    batch[-1]["timestamp"] = "yesterday"
+    before = snapshot(store)
+    with pytest.raises(IngestError) as refused:
+        IngestService(store).ingest_batch(batch)
+    assert [p["item"] for p in refused.value.problems] == [2 * CHUNK]
+    assert snapshot(store) == before
+    assert store.outbox.count_documents({"time": {"$gte": STAMP + 600}}) == 0
+
+
+def test_a_batch_sent_in_chunks_with_scenes_stored_before_keeps_their_ids(store):
+    batch = [valid_scene(seed=70 + i, timestamp=STAMP + 700 + i) for i in range(2 * CHUNK + 1)]
+    stored = IngestService(store).ingest_batch(batch[CHUNK + 1 : CHUNK + 3])
+    results = IngestService(store).ingest_batch(batch)
+    assert [r.created for r in results] == [not CHUNK < i < CHUNK + 3 for i in range(len(batch))]
+    assert results[CHUNK + 1 : CHUNK + 3] == [replace(r, created=False) for r in stored]
+    assert store.scenes.count_documents({"timestamp": {"$gte": STAMP + 700}}) == len(batch)
+    assert store.outbox.count_documents({"time": {"$gte": STAMP + 700}}) == len(batch)
+
+
+TRANSIENT = {"errorLabels": ["TransientTransactionError"]}  # pymongo runs the transaction again
+
+
+@pytest.mark.parametrize("fails", ["the second chunk's insert", "the commit"])
+def test_a_chunked_batch_whose_transaction_is_run_again_is_stored_once(store, monkeypatch,
+                                                                      fails):
+    failures = iter([OperationFailure("write conflict", 112, TRANSIENT)])
+    if fails == "the commit":
+        commit = ClientSession.commit_transaction
+
+        def flaky(session):
+            if error := next(failures, None):
+                session.abort_transaction()  # as the server does
+                raise error
+            commit(session)
+
+        monkeypatch.setattr(ClientSession, "commit_transaction", flaky)
+    else:
+        insert, calls = store._insert, []
+
+        def flaky(documents, session):
+            calls.append(documents)
+            if len(calls) == 2 and (error := next(failures, None)):
+                raise error
+            insert(documents, session)
+
+        monkeypatch.setattr(store, "_insert", flaky)
+    stamp = STAMP + (800 if fails == "the commit" else 900)
+    batch = [valid_scene(seed=80 + i, timestamp=stamp + i) for i in range(2 * CHUNK + 1)]
+    results = IngestService(store).ingest_batch(batch)
+    assert next(failures, None) is None and all(r.created for r in results)
+    assert store.scenes.count_documents({"timestamp": {"$gte": stamp, "$lt": stamp + 100}}) \
+        == len(batch)
+
+
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
@@ -246,3 +308,29 @@ def test_the_published_example_ingests(store):
     stored = store.get_scene(ids.scene_id)
     assert stored.clusters[0].annotations[-1].type_name == "lab.annotation.Weight"
     assert stored.clusters[0].hypotheses[0].crop.data.shape == (8, 8, 3)
+
+
+@pytest.mark.parametrize("fmt, extension", [("png", ".png"), ("jpeg", ".jpg")])
+def test_an_image_given_as_a_file_is_stored_as_that_file_and_reads_back_exactly(
+        store, kitchen_rgb, fmt, extension):
+    file = cv2.imencode(extension, kitchen_rgb[100:164, 200:264])[1].tobytes()
+    scene = valid_scene(seed=7, timestamp=STAMP + 70 + len(fmt))
+    scene["images"] = {"color": {fmt: b64(file), "encoding": "bgr8"}}
+    ids = IngestService(store).ingest(scene)
+    stored = store.scenes.find_one({"_id": ids.scene_id})["images"]["color"]
+    assert bytes(stored["data"]) == file  # not decoded and encoded again
+    read = store.get_scene(ids.scene_id).images["color"]
+    assert np.array_equal(read.data, cv2.imdecode(np.frombuffer(file, np.uint8),
+                                                  cv2.IMREAD_UNCHANGED))
+
+
+def test_an_image_whose_pixels_changed_is_encoded_again(kitchen_rgb):
+    file = cv2.imencode(".png", kitchen_rgb[:64, :64])[1].tobytes()
+    image = Image.model_validate({"png": b64(file)}, context={})
+    assert image.file == file
+    with pytest.raises(ValueError):  # the pixels of a file are not changed in place
+        image.data[0, 0] = 0
+    image.data = kitchen_rgb[64:128, :64]
+    assert image.file is None
+    image = Image.model_validate({"png": b64(file), "format": "jpeg"}, context={})
+    assert image.file is None

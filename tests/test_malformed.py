@@ -15,7 +15,10 @@ import cv2
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from percept_memory.ingest.json_input import input_problems, parse, screened
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types.base import MAX_TIMESTAMP
 from percept_memory.webui.app import create_app
@@ -265,3 +268,44 @@ def test_import_refuses_what_is_not_a_scene(tmp_path, mongo_uri, db_name, store,
                                             words):
     line = refused_by_import(tmp_path, mongo_uri, db_name, store, text)
     assert "scene.json" in line and words in line
+
+
+# --- the screen of raw bytes that lets valid input skip the walk of json_input ----------------
+
+EDGES = st.sampled_from(["$", "$x", "a\0b", "\ud800", "x" * 40, "9" * 19, "[", "]", "{", "\\"])
+JSON_VALUES = st.recursive(
+    st.none() | st.booleans() | st.floats(allow_nan=False)
+    | st.integers(-(2**66), 2**66) | st.sampled_from([2**63 - 1, 2**63, -(2**63), -(2**63) - 1])
+    | st.text(max_size=8) | EDGES,
+    lambda inner: st.lists(inner, max_size=4)
+    | st.dictionaries(st.text(max_size=4) | EDGES, inner, max_size=4),
+    max_leaves=40)
+
+
+def bodies(data) -> list[bytes]:
+    """The data as a scene and as a batch of one, compact, spaced and with text unescaped."""
+    texts = [json.dumps(data), json.dumps(data, indent=1), json.dumps(data, ensure_ascii=False)]
+    return [encoded for text in texts
+            for encoded in (text.encode("utf-8", "surrogatepass"),
+                            f"[{text}]".encode("utf-8", "surrogatepass"))]
+
+
+@pytest.mark.parametrize("name, path, value, where", CORPUS, ids=[c[0] for c in CORPUS])
+def test_the_screen_never_passes_what_the_walk_refuses(name, path, value, where):
+    data = spoilt(path, value)
+    if input_problems(data):
+        assert not any(map(screened, bodies(data)))
+
+
+@settings(max_examples=400, deadline=None)
+@given(JSON_VALUES, st.integers(1, 40))
+def test_the_screen_never_passes_what_the_walk_refuses_random(value, depth):
+    data = {"v": value, "deep": nested(depth)}
+    if input_problems(data):  # the walk of a batch walks each scene
+        assert not any(map(screened, bodies(data)))
+
+
+def test_a_valid_scene_passes_the_screen_and_parses_as_json_does():
+    for body in bodies(SCENE):
+        assert screened(body)
+        assert parse(body) == (json.loads(body), True)

@@ -112,6 +112,22 @@ def test_a_scene_is_acknowledged_with_its_stages_pending_and_consolidated_once(e
                    "consolidated_until_ns": week.scenes[9].timestamp}
 
 
+def test_the_pipeline_thread_gives_way_to_ingest_then_consolidates_everything_once(empty, week):
+    service = IngestService(empty)
+    service.pipeline.start()
+    try:
+        with service.pipeline.ingesting():  # another batch is being stored meanwhile
+            ids = service.ingest_batch(week.scenes[:5])
+            time.sleep(0.5)  # less than YIELD_S
+            assert service.pipeline.pending() == 5
+        assert service.settled(ids, timeout=60)
+    finally:
+        service.pipeline.stop()
+    clusters = sum(len(s.clusters) for s in week.scenes[:5])
+    assert empty.db[EVENTS].count_documents({"cluster_id": {"$ne": None}}) == clusters
+    assert service.pipeline.run_once() == 0
+
+
 def test_scenes_are_consolidated_in_time_order_whatever_order_they_were_stored_in(empty, week):
     """Stored newest first but consolidated together: the pipeline takes them in time order,
     so the belief is the one of the scenes in time order."""

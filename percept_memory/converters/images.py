@@ -3,6 +3,8 @@
 The codec works for any image model with the fields `data` (numpy array), `encoding`
 (ROS-style: rgb8, bgr8, mono8, mono16, 32FC1, ...) and `format` ("png", "jpeg", "raw").
 PNG files are written with the right colour order, so a stored PNG opens correctly anywhere.
+An image model may also have `file`: PNG or JPEG bytes of its `format` that decode to exactly
+its `data` (the file it was read from), stored as they are instead of encoding `data` again.
 """
 
 from __future__ import annotations
@@ -139,7 +141,8 @@ class ImageCodec:
         else:
             doc["dtype"] = array.dtype.str
             doc["shape"] = list(array.shape)
-            doc["data"] = ctx.binary(compress(array, image.encoding, fmt))
+            file = getattr(image, "file", None) or compress(array, image.encoding, fmt)
+            doc["data"] = ctx.binary(file)
         return doc
 
     def decode(self, doc: dict, ctx: DecodeContext) -> Any:

@@ -8,12 +8,19 @@ input gets a 422 naming the field instead of a server error (README: Security).
 - strings: UTF-8 encodable (no lone surrogate such as "\\ud800"), at most MAX_STRING
   characters (pixels and array bytes in base64 aside: their own limits apply);
 - field names: no NUL, none starting with `$` (MongoDB's operators).
+
+Walking every value of a parsed batch costs more than parsing it, so `parse` first screens the
+raw bytes: what the screen clears cannot hold any of these problems and need not be walked;
+anything else is walked as before (`parse` says which).
 """
 
 from __future__ import annotations
 
 import json
+import re
 from typing import Any
+
+from pydantic_core import from_json
 
 MAX_DEPTH = 32
 MAX_STRING = 2**20  # characters of one text, label, log message...
@@ -29,6 +36,65 @@ def loads(text: str | bytes) -> Any:
         raise ValueError(f"it is nested too deeply (at most {MAX_DEPTH} levels)") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise ValueError(str(error)) from None
+
+
+def parse(body: bytes) -> tuple[Any, bool]:
+    """The JSON value of a request body or file, and whether `input_problems` can find nothing
+    in it (True: the bytes passed `screened` and parsed as JSON, so that walk can be skipped).
+    Raises what `loads` raises."""
+    if screened(body):
+        try:
+            return from_json(body), True  # pydantic-core's parser: twice as fast as json's
+        except ValueError:
+            pass  # e.g. a byte order mark: json's parser takes it, or says what is wrong
+    return loads(body), False
+
+
+NOT_A_BRACKET = bytes(range(256)).translate(None, b"[]{}")
+EMPTY_PAIRS = re.compile(rb"\[\]|\{\}")  # one pass removes the pairs empty before it
+DIGITS_AS_ZERO = bytes.maketrans(b"123456789", b"0" * 9)
+DIGITS = re.compile(rb"\d+")
+LONG_DIGITS = b"0" * 19  # the fewest digits of an integer beyond 64 bits
+
+
+def screened(body: bytes) -> bool:
+    """True when the raw JSON text cannot hold anything `input_problems` refuses, judged from its
+    bytes without parsing it (False: it may, walk it):
+    - no backslash: no escape, so no lone surrogate or NUL (only escapes write those), and a
+      `"` always starts or ends a string; UTF-8 (raw surrogates are not), no NUL byte;
+    - no `"$`: no field name starts with `$`;
+    - no string longer than MAX_STRING bytes, so none of more characters;
+    - no integer beyond 64 bits;
+    - brackets outside strings nested at most MAX_DEPTH levels."""
+    if b"\\" in body or b"\0" in body or (b"$" in body and b'"$' in body):  # one byte: 20x faster
+        return False
+    if _big_integer(body):
+        return False
+    if not body.isascii():
+        try:
+            body.decode("utf-8")
+        except UnicodeDecodeError:
+            return False
+    pieces = body.split(b'"')  # strings at odd places
+    if max(map(len, pieces[1::2]), default=0) > MAX_STRING:
+        return False
+    brackets = b"".join(pieces[::2]).translate(None, NOT_A_BRACKET)
+    for _ in range(MAX_DEPTH):  # each pass takes one level off
+        brackets = EMPTY_PAIRS.sub(b"", brackets)
+    return not brackets
+
+
+def _big_integer(body: bytes) -> bool:
+    """Whether a run of digits, not a fraction's, may be an integer beyond 64 bits (runs of
+    19 digits or more found by a plain search: a regular expression takes 20 times longer)."""
+    zeros = body.translate(DIGITS_AS_ZERO)
+    start = zeros.find(LONG_DIGITS)
+    while start != -1:
+        run = DIGITS.match(body, start).group()
+        if body[start - 1 : start] != b"." and (len(run) > 19 or int(run) >= 2**63 - 1):
+            return True
+        start = zeros.find(LONG_DIGITS, start + len(run))
+    return False
 
 
 def input_problems(data: Any) -> list[dict]:

@@ -1,12 +1,14 @@
 """The one way in: validate -> store (with the outbox) -> ids.
 
 HTTP, the CLI and every importer hand scenes to `IngestService`. A batch is validated whole
-before anything is written, so bad input never leaves half a batch behind; the valid batch is
-stored in one transaction, each new scene with its outbox entry: the after-store stages
-(identity consolidation, enqueueing lookups) then run from the outbox in the memory pipeline
-(memory/pipeline.py), exactly once, in time order per map. Ingest answers once the scenes are
-durably stored; a caller that needs the belief updated first waits for it (`wait`). Scenes
-stored before (same robot, same timestamp) are not written again and keep their ids.
+before anything is committed, so bad input never leaves half a batch behind; the valid batch
+is stored in one transaction (its first scenes sent while the next are being validated; the
+transaction is abandoned if any is invalid), each new scene with its outbox entry: the
+after-store stages (identity consolidation, enqueueing lookups) then run from the outbox in the
+memory pipeline (memory/pipeline.py), exactly once, in time order per map. Ingest answers once
+the scenes are durably stored; a caller that needs the belief updated first waits for it
+(`wait`). Scenes stored before (same robot, same timestamp) are not written again and keep
+their ids.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 
 DEFAULT_BATCH = 32
+CHUNK = 8  # scenes of a batch sent to the server while the next ones are validated
 UNION_TAGS = {"known", "unknown"}  # arms of polymorphic fields, not part of a field's path
 
 
@@ -43,16 +46,19 @@ def problems_of(error: ValidationError, item: Any) -> list[dict]:
     ]
 
 
-def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 0) -> Scene:
+def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 0,
+             screened: bool = False) -> Scene:
     """A Scene from a Scene or from interchange data (a dict as parsed from JSON). `context`
-    carries what reading it needs, e.g. the scene-log folder that relative paths refer to."""
+    carries what reading it needs, e.g. the scene-log folder that relative paths refer to.
+    `screened`: the data was parsed from JSON text that passed json_input.screened, so walking
+    it for input_problems would find nothing."""
     if isinstance(data, Scene):
         return data
     if not isinstance(data, Mapping):
         raise IngestError([{"item": item, "path": "", "message":
                             f"a scene is a JSON object, not {type(data).__name__}",
                             "type": "model_type"}])
-    if problems := input_problems(data):
+    if not screened and (problems := input_problems(data)):
         raise IngestError([{"item": item, **problem} for problem in problems])
     try:
         return Scene.model_validate(dict(data), context=dict(context or {}))
@@ -83,13 +89,16 @@ class IngestService:
         context: Mapping | None = None,
         labels: Sequence[str] | None = None,
         wait: float | None = None,
+        screened: bool = False,
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
         any item is invalid (the IngestError names every problem, by label or index). With
         `wait` (seconds), also wait until the new scenes went through the pipeline (their
-        belief is current), at most that long: `settled` tells whether they did."""
-        scenes = self._validated(items, context, labels)
-        results = self._stored(self.store.put_scenes(scenes))
+        belief is current), at most that long: `settled` tells whether they did. `screened`:
+        as for `validate`."""
+        with self.pipeline.ingesting():
+            chunks = self._validated_chunks(items, context, labels, screened)
+            results = self._stored(self.store.put_scene_chunks(chunks))
         if wait is not None:
             self.settled(results, wait)
         return results
@@ -140,16 +149,27 @@ class IngestService:
         return list(map(Ingested, scenes, self._stored(write.result())))
 
     def _validated(self, items, context, labels) -> list[Scene]:
+        return [scene for chunk in self._validated_chunks(items, context, labels)
+                for scene in chunk]
+
+    def _validated_chunks(self, items, context, labels, screened=False) -> Iterator[list[Scene]]:
+        """The items validated, CHUNK at a time while all are valid (to be stored while the
+        next are validated); in the end an IngestError naming every problem, if any."""
         context = {**self.limits, **(context or {})}
-        scenes, problems = [], []
+        chunk, problems = [], []
         for index, data in enumerate(items):
             try:
-                scenes.append(validate(data, context, item=labels[index] if labels else index))
+                chunk.append(validate(data, context, labels[index] if labels else index,
+                                      screened))
             except IngestError as error:
                 problems.extend(error.problems)
+            if len(chunk) == CHUNK and not problems:
+                yield chunk
+                chunk = []
         if problems:
             raise IngestError(problems)
-        return scenes
+        if chunk:
+            yield chunk
 
     def _stored(self, results: list[SceneIds]) -> list[SceneIds]:
         """Tell the pipeline there is work (when new scenes were stored); hand the ids back."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Sequence
 
+import numpy as np
 from bson import ObjectId
 from pymongo import UpdateOne
 
@@ -50,8 +51,9 @@ _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
 # what deciding reads of a candidate object (its names only once it is seen again)
-CANDIDATE_FIELDS = {"state": 1, "position": 1, "region": 1, "last_cluster": 1, "last_seen": 1,
-                    "first_seen": 1, "views": 1}
+CANDIDATE_FIELDS = {"state": 1, "position": 1, "place_count": 1, "region": 1,
+                    "last_cluster": 1, "last_seen": 1, "first_seen": 1, "views": 1}
+MAX_PLACE_COUNT = 20  # observations an object's place is the mean of, at most
 VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
 SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotations": 0,
@@ -120,7 +122,7 @@ class Consolidation:
         many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, places, session)
         seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
-        known = [Known(o["_id"], seen_as[o["last_cluster"]], in_view,
+        known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
                        [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
                  for o, in_view in believed if o["last_cluster"] in seen_as]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
@@ -141,8 +143,10 @@ class Consolidation:
             if unseen and previous.get("state") in (_STATE[decision.explanation], "disappeared"):
                 continue  # events record changes: still hidden (or still gone) is no news
             events.append(_event(decision, object_id, scene, cluster, previous))
-            objects.append(_object_update(object_id, decision, scene, cluster, previous))
-            places.put(object_id, cluster.position if cluster else previous.get("position"),
+            place = (estimated_place(decision, cluster, previous, self.params, calibration)
+                     if cluster else None)
+            objects.append(_object_update(object_id, decision, scene, cluster, previous, place))
+            places.put(object_id, place[0] if place else previous.get("position"),
                        live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
@@ -275,14 +279,39 @@ def _views(doc: dict) -> list:
     return doc.get("views") or [doc["last_cluster"]]
 
 
+def _placed(last: Observation, place) -> Observation:
+    """An object as last seen, at its estimated place."""
+    return last if place is None else Observation(last.key, tuple(place), last.evidence)
+
+
+def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params: Parameters,
+                    calibration: Calibration) -> tuple[list | None, int]:
+    """Where an object is, from all its observations since it last moved (their mean: the
+    noise of one observation shrinks by the square root of their number), and how many. A
+    move or a new object starts afresh, and so does an observation farther from the mean
+    than one object's observations lie apart (3 standard deviations of the calibration's
+    same-place spread: a small move taken for a stay); MAX_PLACE_COUNT keeps a slow drift
+    followed."""
+    if cluster.position is None:
+        return previous.get("position"), previous.get("place_count", 0)
+    count = previous.get("place_count") or 1
+    if (decision.explanation in (Explanation.STAY, Explanation.NEWVIEW)
+            and previous.get("position") is not None
+            and calibration.place.near(cluster.position, previous["position"],
+                                       params.proximity_sigma)):
+        mean = np.add(np.multiply(previous["position"], count), cluster.position) / (count + 1)
+        return mean.tolist(), min(count + 1, MAX_PLACE_COUNT)
+    return list(cluster.position), 1
+
+
 def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster | None,
-                   previous: dict) -> UpdateOne:
+                   previous: dict, place: tuple | None) -> UpdateOne:
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
     weights = stored_weights(previous)
     views = [c for c in _views(previous) if c != decision.look] if previous else []
     weights.update(naming_labels(cluster.annotations))
-    position = list(cluster.position) if cluster.position else None
+    position, count = place
     return UpdateOne(
         {"_id": object_id},
         {
@@ -290,7 +319,8 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
                 "map": scene.map, "state": "present", "last_seen": scene.timestamp,
                 "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
                 "views": [*views, cluster.id][-VIEWS_KEPT:],
-                "position": position, "x": position[0] if position else None,
+                "position": position, "place_count": count,
+                "x": position[0] if position else None,
                 "y": position[1] if position else None, "region": cluster.region,
                 **naming_fields(weights),
             },

@@ -56,6 +56,16 @@ class Documents:
     labels: set[str] = field(default_factory=set)  # and labels to find by their words
     outbox: list[dict] = field(default_factory=list)  # the stages each new scene awaits
 
+    def add(self, other: Documents) -> None:
+        """Take in another write's documents (the two are written as one)."""
+        self.scenes += other.scenes
+        self.clusters += other.clusters
+        self.outbox += other.outbox
+        self.blobs.update(other.blobs)
+        self.type_names |= other.type_names
+        self.terms |= other.terms
+        self.labels |= other.labels
+
     def encode(self, value: Scene | Cluster, threshold: int) -> dict:
         """The document of one object. Each document lists the blobs it refers to itself,
         even when another document of the write holds the same (content-addressed) bytes."""
@@ -89,6 +99,18 @@ def prepared(scenes: Sequence[Scene], stored: dict, threshold: int) -> PreparedW
     before = [id_snapshot(scene) for scene in scenes]
     fresh, results = partition(scenes, stored)
     return PreparedWrite(scenes, fresh, results, scene_documents(fresh, threshold), before)
+
+
+def joined(writes: Sequence[PreparedWrite]) -> PreparedWrite:
+    """Writes prepared one after the other, as one."""
+    whole = PreparedWrite([], [], [], Documents(), [])
+    for write in writes:
+        whole.scenes += write.scenes  # type: ignore[operator]
+        whole.fresh += write.fresh
+        whole.results += write.results
+        whole.documents.add(write.documents)
+        whole.before += write.before
+    return whole
 
 
 def id_snapshot(scene: Scene) -> IdSnapshot:

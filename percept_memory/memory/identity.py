@@ -320,6 +320,12 @@ class Cue:
     same: Spread
     different: Histogram | Spread
 
+    def near(self, a: Vec, b: Vec, sigma: float) -> bool:
+        """Whether two places lie as near as one object's observations do (within 3 standard
+        deviations of the same-place spread)."""
+        u = surprise(proximities([a], [b], sigma)[0, 0])
+        return u <= self.same.mean + 3 * math.sqrt(self.same.variance)
+
     def odds(self, similarity):
         """The likelihood ratio of a similarity (or of an array of them, NaN or None where
         there is nothing to compare: no evidence either way, odds 1). Nearer is never less

@@ -15,6 +15,11 @@ each stage's writes land exactly once or not at all, whoever dies when.
   After `max_attempts` a scene is *held*: kept with its error and shown (`pmem pipeline`,
   GET /api/pipeline, the /pipeline page), and the scenes behind it go on: one bad scene never
   stops a robot's memory. A held scene is retried by hand (`pmem pipeline --retry`).
+- Ingest first: a consolidator thread shares the interpreter with the server it runs in, so it
+  gives way to scenes being stored there (`ingesting`): it waits while a batch is being
+  stored (at most YIELD_S) and takes one scene at a time until ingest has paused for BUSY_S.
+  Everything is still consolidated, in order, exactly once; a burst of ingest is just not
+  slowed to half its speed by it.
 - Late scenes: a scene older than the newest consolidated scene of its map (it arrived late,
   or was held and retried) rebuilds the map: the belief stages forget the map and every scene
   of the map is queued for them again. So the belief always equals what consolidating the
@@ -29,7 +34,8 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from typing import Any, Protocol
 
@@ -49,6 +55,8 @@ BATCH = 32
 MAX_ATTEMPTS = 5
 BACKOFF_S = 0.5  # then 1, 2, 4 s: a failing scene holds its map about 8 s before it is held
 POLL_S = 0.25
+YIELD_S = 1.0  # the longest a consolidator thread waits for ingest to pause
+BUSY_S = 1.0  # after ingest, a consolidator thread takes one scene at a time this long
 ORDER = [("time", ASCENDING), ("_id", ASCENDING)]
 DUPLICATE_KEY = 11000
 
@@ -94,6 +102,9 @@ class Pipeline:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._ingest = threading.Condition()
+        self._storing = 0  # batches being stored in this process now
+        self._stored_at = -BUSY_S  # when the last one was (time.monotonic)
 
     # --- running ---------------------------------------------------------------------------
 
@@ -163,6 +174,33 @@ class Pipeline:
         """New scenes were stored: look now, not at the next poll."""
         self._wake.set()
 
+    @contextmanager
+    def ingesting(self) -> Iterator[None]:
+        """Around storing a batch of scenes in this process: the pipeline's thread gives way
+        meanwhile (see `_give_way`)."""
+        with self._ingest:
+            self._storing += 1
+        try:
+            yield
+        finally:
+            with self._ingest:
+                self._storing -= 1
+                self._stored_at = time.monotonic()
+                self._ingest.notify_all()
+
+    def _give_way(self) -> int:
+        """How many scenes to take next: in the pipeline's own thread, wait while a batch is
+        being stored in this process (at most YIELD_S), then one scene while ingest is busy,
+        else a whole batch."""
+        if threading.current_thread() is not self._thread:
+            return self.batch
+        deadline = time.monotonic() + YIELD_S
+        with self._ingest:
+            while self._storing and self._ingest.wait(max(deadline - time.monotonic(), 0)):
+                pass
+            busy = self._storing or time.monotonic() - self._stored_at < BUSY_S
+        return 1 if busy else self.batch
+
     def run_forever(self) -> None:
         """Work whenever there is work, until stop(); a database outage is waited out."""
         while not self._stop.is_set():
@@ -199,7 +237,7 @@ class Pipeline:
         tried scene by scene, so only the failing scene waits and is counted against."""
         count, size = 0, self.batch
         while True:
-            entries = self._next(map_name, size)
+            entries = self._next(map_name, min(size, self._give_way()))
             if not entries:
                 return count
             head = (entries[0]["time"], entries[0]["_id"])

@@ -9,7 +9,10 @@ the document layout in documents.py and do only the I/O here.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+import queue
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import suppress
 
 from bson import ObjectId
 from pymongo import MongoClient, UpdateOne
@@ -66,6 +69,10 @@ def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
 
 
 HALVE, STORED = "halve", "stored"
+
+
+class _Abort(Exception):
+    """Ends a transaction of put_scene_chunks whose chunks failed: nothing is committed."""
 
 
 def halves(items: Sequence) -> tuple[Sequence, Sequence]:
@@ -187,6 +194,51 @@ class MemoryStore(StoreBase):
         encode the next batch while the previous one is being written. Optimistic: the scenes
         are taken to be new; the unique robot + timestamp index tells otherwise at commit."""
         return docs.prepared(scenes, {}, self.gridfs_threshold)
+
+    def put_scene_chunks(self, chunks: Iterable[Sequence[Scene]]) -> list[docs.SceneIds]:
+        """put_scenes of the scenes of all chunks, in one transaction, each chunk encoded and
+        sent while the server is still inserting the chunks before it (a writer thread), so
+        that the server's work hides behind the caller's, e.g. validating the next chunk.
+        An exception from `chunks` aborts the transaction: nothing is stored. What the server
+        refuses (a scene stored before, a batch too large) is handled as put_scenes does."""
+        prepared: list[docs.PreparedWrite] = []
+        handed: queue.SimpleQueue = queue.SimpleQueue()
+        sent: list[docs.Documents] = []
+        all_sent = False
+
+        def work(session):  # run again from the start when the transaction is retried
+            nonlocal all_sent
+            for documents in sent:
+                self._insert(documents, session)
+            while not all_sent:
+                documents = handed.get()
+                if isinstance(documents, BaseException):
+                    raise documents
+                if documents is None:
+                    all_sent = True
+                else:
+                    sent.append(documents)
+                    self._insert(documents, session)
+
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmem-writer") as writer:
+            committed = writer.submit(self._transaction, work, retry_unreachable=False)
+            try:
+                for chunk in chunks:
+                    prepared.append(self.prepare_scenes(chunk))
+                    handed.put(prepared[-1].documents)
+            except BaseException:
+                handed.put(_Abort())
+                with suppress(Exception):  # the caller's error is the one to tell
+                    committed.result()
+                raise
+            handed.put(None)
+            whole = docs.joined(prepared)
+            try:
+                committed.result()
+            except (DocumentTooLarge, OperationFailure):
+                return self.commit_scenes(whole)
+        self._catalogue(whole.documents)
+        return whole.results
 
     def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
         """The second half of put_scenes: write the new scenes in one transaction. When some

@@ -19,7 +19,7 @@ from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
 
 from percept_memory.ingest.jobs import State, job_report
-from percept_memory.ingest.json_input import loads
+from percept_memory.ingest.json_input import parse
 from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
 from percept_memory.memory.errors import StoreError
 from percept_memory.memory.pipeline import status as pipeline_status
@@ -118,12 +118,12 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         lookups follow (see GET /api/pipeline), unless `wait=belief`. Scenes stored before
         (same robot and timestamp) keep their ids and come back with `created: false`."""
         _authorise(request, settings.token)
-        data = _parse_json(await _read_body(request, max_bytes))
+        data, screened = _parse_json(await _read_body(request, max_bytes))
         items = data if isinstance(data, list) else [data]
         if not items:
             raise ApiError(422, "the batch is empty")
         try:
-            results = await run_in_threadpool(service.ingest_batch, items)
+            results = await run_in_threadpool(service.ingest_batch, items, screened=screened)
         except IngestError as error:
             raise ApiError(422, "the scenes are not valid", error.problems) from None
         answer: dict[str, Any] = {}
@@ -215,8 +215,8 @@ async def _read_body(request: Request, max_bytes: int) -> bytes:
     return b"".join(chunks)
 
 
-def _parse_json(body: bytes) -> Any:
+def _parse_json(body: bytes) -> tuple[Any, bool]:
     try:
-        return loads(body)
+        return parse(body)
     except ValueError as error:
         raise ApiError(422, f"the body is not valid JSON: {error}") from None

@@ -126,8 +126,7 @@ class Model(Typed):
     @model_validator(mode="wrap")
     @classmethod
     def _dispatch_on_type(cls, data: Any, handler, info: ValidationInfo):
-        is_base = name_of(cls) is None and bool(_registered_kinds(cls))  # e.g. Annotation
-        if isinstance(data, dict) and ("_type" in data or is_base):
+        if isinstance(data, dict) and ("_type" in data or _is_base(cls)):
             data = dict(data)
             name = data.pop("_type", None)
             target = class_for(name) if isinstance(name, str) else None
@@ -181,6 +180,11 @@ def _with_type(schema: dict, name: str, handler: GetJsonSchemaHandler, required:
     if required:
         target["required"] = ["_type", *target.get("required", [])]
     return schema
+
+
+def _is_base(cls: type) -> bool:
+    """Whether cls is the unnamed base of registered kinds, e.g. Annotation."""
+    return name_of(cls) is None and bool(_registered_kinds(cls))
 
 
 def _registered_kinds(base: type) -> list[type]:

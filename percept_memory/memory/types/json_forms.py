@@ -106,13 +106,14 @@ def array_to_json(array: np.ndarray) -> dict:
     }
 
 
-def image_from_json(data: Any, info: ValidationInfo) -> Any:
-    """Image fields with the pixels decoded from PNG/JPEG (base64 or a file)."""
+def image_from_json(data: Any, info: ValidationInfo) -> tuple[Any, bytes | None]:
+    """Image fields with the pixels decoded from PNG/JPEG (base64 or a file), and the PNG or
+    JPEG bytes they were decoded from (None when the pixels came as an array)."""
     if not isinstance(data, dict):
-        return data
+        return data, None
     given = [key for key in (*IMAGE_FORMATS, "path") if key in data]
     if not given:
-        return data
+        return data, None
     if len(given) > 1 or "data" in data:
         raise ValueError("give an image's pixels once: data, png, jpeg or path")
     key = given[0]
@@ -129,7 +130,7 @@ def image_from_json(data: Any, info: ValidationInfo) -> Any:
     except ConversionError as error:
         what = f"image file {data['path']!r}" if key == "path" else f"{key} image"
         raise ValueError(f"the {what} {error}") from None
-    return {**fields, "data": pixels}
+    return {**fields, "data": pixels}, encoded
 
 
 def image_limit(info: ValidationInfo, kind: str = "max_image_pixels") -> int:

@@ -10,6 +10,7 @@ from pydantic import (
     Field,
     PlainSerializer,
     PlainValidator,
+    PrivateAttr,
     ValidationInfo,
     WithJsonSchema,
     field_validator,
@@ -17,6 +18,7 @@ from pydantic import (
 )
 
 from percept_memory.converters import ImageCodec, register_codec
+from percept_memory.converters.images import PNG_SIGNATURE
 
 from .base import Model, Timestamp, stored_type
 from .json_forms import (
@@ -133,11 +135,31 @@ class Image(Model):
     data: NDArray
     encoding: str = "bgr8"
     format: Literal["png", "jpeg", "raw"] = "png"
+    _given_file: tuple[np.ndarray, str, bytes] | None = PrivateAttr(default=None)
 
-    @model_validator(mode="before")
+    @model_validator(mode="wrap")
     @classmethod
-    def _decode_files(cls, data: Any, info: ValidationInfo) -> Any:
-        return image_from_json(data, info)
+    def _decode_files(cls, data: Any, handler, info: ValidationInfo) -> Image:
+        fields, file = image_from_json(data, info)
+        image = handler(fields)
+        if file is not None and image.data is fields["data"]:
+            image.data.flags.writeable = False  # the pixels stay what the file holds
+            image._given_file = (image.data, image.encoding, file)
+        return image
+
+    @property
+    def file(self) -> bytes | None:
+        """The PNG or JPEG file (as `format` says) the pixels were read from, when they still
+        are its pixels and it is no larger than they are: the store keeps it as it is instead
+        of encoding the pixels again (decoding it gives them back exactly)."""
+        if self._given_file is None:
+            return None
+        data, encoding, file = self._given_file
+        kind = "png" if file.startswith(PNG_SIGNATURE) else "jpeg"
+        if (self.data is data and self.encoding == encoding and self.format == kind
+                and len(file) <= data.nbytes):
+            return file
+        return None
 
     def _json_fields(self, fields: dict) -> dict:
         return image_to_json(fields, self.data)

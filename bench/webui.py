@@ -14,7 +14,12 @@ searched by text, region and time, a sphere, an annotation field predicate, as a
 a list, and its second page. --keep DB builds into DB once and reuses it (bench/queries.py
 --keep DB builds the same).
 
+Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 points), and the
+playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with
+an annotator's error, an object with an event in one in 100): the API's steps and the page.
+
 Usage: python bench/webui.py [--repeat N] [--map-days N] [--search-clusters N] [--keep DB]
+                             [--playback-scenes N]
 (--search-clusters 0: no search pages)
 """
 
@@ -29,6 +34,7 @@ from urllib.parse import urlencode
 
 import cv2
 import numpy as np
+from bson import ObjectId
 from fastapi.testclient import TestClient
 from ingest import KITCHEN, kitchen_image  # bench/ingest.py, beside this file
 from queries import build  # bench/queries.py
@@ -38,9 +44,10 @@ from scratch import print_json, scratch_store
 
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest import synthetic
+from percept_memory.ingest.rgbd import read_samples
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.types import Image
+from percept_memory.memory.types import Image, LogLine, Scene
 from percept_memory.webui.app import create_app
 
 STAMP = 1_700_000_000_000_000_000
@@ -109,12 +116,56 @@ def map_page(args: argparse.Namespace) -> dict:
                                 args.repeat)}
 
 
+def solid_views(repeat: int) -> dict:
+    """The 3D view of the real RGB-D kitchen frame: the page, and its points as binary."""
+    (scene,) = read_samples(KITCHEN)
+    with scratch_store() as store:
+        store.put_scenes([scene])
+        client = TestClient(create_app(store, Settings(db=store.db.name, consolidator=False)),
+                            base_url="http://127.0.0.1")
+        return {"scene_page_3d": timed(client, f"/scenes/{scene.id}?view=3d", repeat),
+                "cloud_200k_points": timed(client, f"/api/scenes/{scene.id}/cloud", repeat)}
+
+
+def playback(count: int, repeat: int) -> dict:
+    """The playback's steps over `count` scenes of one robot in one map, a year long."""
+    step = 365 * 86_400 * 10**9 // count
+    with scratch_store() as store:
+        fine, failed = (Scene(timestamp=STAMP + i, robot="pr2", map="site", log=log)
+                        for i, log in enumerate(([], [LogLine(source="OCRAnnotator",
+                                                              level="error", message="crash")])))
+        store.put_scenes([fine, failed])
+        documents = [store.scenes.find_one({"_id": s.id}) for s in (fine, failed)]
+        store.scenes.delete_many({})
+        followed = ObjectId()
+        for start in range(0, count, 10_000):
+            scenes = [{**documents[i % 1000 == 999], "_id": ObjectId(),
+                       "timestamp": STAMP + i * step}
+                      for i in range(start, min(count, start + 10_000))]
+            store.scenes.insert_many(scenes)
+            store.db.events.insert_many([
+                {"object_id": followed, "scene_id": s["_id"], "time": s["timestamp"],
+                 "robot": "pr2", "map": "site", "explanation": "stay"} for s in scenes[::100]])
+        client = TestClient(create_app(store, Settings(db=store.db.name, consolidator=False)),
+                            base_url="http://127.0.0.1")
+        middle = STAMP + count // 2 * step + 1
+        api = {name: timed(client, "/api/playback?" + urlencode(
+                   {"robot": "pr2", "map": "site", "t": middle, **query}), repeat)
+               for name, query in {"at": {}, "next": {"step": "next"},
+                                   "failure": {"step": "failure"},
+                                   "event": {"step": "event", "object": followed}}.items()}
+        page = timed(client, "/playback?" + urlencode(
+            {"robot": "pr2", "map": "site", "t": middle, "object": followed}), repeat)
+        return {"scenes": count, "api": api, "page_following_an_object": page}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=30)
     parser.add_argument("--map-days", type=int, default=7)
     parser.add_argument("--search-clusters", type=int, default=1_000_000)
     parser.add_argument("--keep", metavar="DB", help="build the large memory into DB, keep it")
+    parser.add_argument("--playback-scenes", type=int, default=1_000_000)
     args = parser.parse_args()
     rng, image = np.random.default_rng(0), kitchen_image()
     big = synthetic.scene(rng, STAMP, clusters=20, image=image)
@@ -146,6 +197,8 @@ def main() -> None:
     result["map_page"] = map_page(args)
     if args.search_clusters:
         result["search_page"] = search_pages(args)
+    result["solid_views"] = solid_views(args.repeat)
+    result["playback"] = playback(args.playback_scenes, args.repeat)
     print_json(result)
 
 

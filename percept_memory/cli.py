@@ -593,6 +593,7 @@ EXAMPLES = {
     "annotation_stats": ("pmem query annotation-stats --region shelf",),
     "cooccurrence": ("pmem query cooccurrence pringles --by-hour",),
     "timings": ("pmem query timings --robot pr2 --json",),
+    "playback": ("pmem query playback --robot pr2 --t 2024-03-06T08:30 --step next",),
 }
 
 

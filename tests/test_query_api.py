@@ -32,6 +32,7 @@ VALID = {
     "annotation_stats": {"region": "shelf"},
     "cooccurrence": {"x": "nutella"},
     "timings": {"robot": "pr2"},
+    "playback": {"robot": "pr2", "t": "2024-03-06T08:30", "step": "next"},
 }
 assert set(VALID) == set(QUERIES)
 

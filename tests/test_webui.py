@@ -529,7 +529,8 @@ def audited_pages(store, week, sample, hostile, viewed) -> list[str]:
             f"/clusters/{cluster.id}",
             f"/objects/{cluster.object_id}", "/search?text=cereal", "/search?text=cereal&view=list",
             "/search?near=2.4,0.1,1.25&k=5", "/search?sphere=1,2", "/map", "/annotators",
-            "/enrichment", "/live", "/scenes/nonsense"]
+            "/enrichment", "/live", "/scenes/nonsense", f"/scenes/{sample.id}?view=3d",
+            "/map?view=3d", "/playback"]
 
 
 def test_every_page_is_keyboard_navigable_with_alt_text_and_labels(page, url, store, week,

@@ -206,12 +206,10 @@ def _depth_scene(rgb_path: Path, stamp: str, robot: str) -> Scene:
                           f"image {rgb.shape[1]}x{rgb.shape[0]}")
     log: list[LogLine] = []
     camera = camera_for(rgb.shape[1], rgb.shape[0], pose.child_frame)
-    (fx, _, cx), (_, fy, cy), _ = _matrix(camera)
 
     start = perf_counter()
     v, u = np.nonzero(depth)
-    z = depth[v, u] / 1000.0
-    seen = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=1)
+    seen = camera.back_project(u, v, depth[v, u] / 1000.0)
     to_map = pose.matrix()
     points = seen @ to_map[:3, :3].T + to_map[:3, 3]
     plane = _fit_plane(points, viewer=to_map[:3, 3], up=np.array([0.0, 0.0, 1.0]))
@@ -587,12 +585,8 @@ def _visible(points: np.ndarray, to_camera: np.ndarray, k: np.ndarray,
 
 def _colours(cloud: np.ndarray) -> np.ndarray:
     """BGR uint8 per point from PCL's packed `rgb`/`rgba` field (grey when there is none)."""
-    name = next((n for n in ("rgb", "rgba") if n in (cloud.dtype.names or ())), None)
-    if name is None:
-        return np.full((len(cloud), 3), 128, np.uint8)
-    packed = np.ascontiguousarray(cloud[name]).view(np.uint32)
-    return np.stack([packed & 255, (packed >> 8) & 255, (packed >> 16) & 255],
-                    axis=1).astype(np.uint8)
+    colours = PointCloud(points=cloud).bgr()
+    return np.full((len(cloud), 3), 128, np.uint8) if colours is None else colours
 
 
 # --- registration of a cloud to its image -------------------------------------------------------

@@ -46,6 +46,10 @@ INDEXES: dict[str, list[IndexModel]] = {
         *(IndexModel([(key, ASCENDING), ("timestamp", DESCENDING), ("_id", DESCENDING)],
                      name=f"{key.rpartition('.')[2]}_newest")
           for key in ("robot", "summary.regions", "summary.annotators", "summary.types")),
+        # a robot's scenes where an annotator failed, in time order (queries/playback.py):
+        # only those scenes are in it
+        IndexModel([("robot", ASCENDING), ("timestamp", ASCENDING)], name="robot_failed_time",
+                   partialFilterExpression={"log.level": "error"}),
     ],
     # Each query path of queries/ has an index ending in (time, _id): results come newest
     # first, and a cursor resumes after the last (time, _id) seen, without sorting in memory.

@@ -27,9 +27,11 @@ from .model import (
     ClusterQuery,
     Cooccurrence,
     History,
+    Playback,
     Timings,
 )
 from .ops import AsyncRunner, Runner
+from .playback import playback
 
 M = TypeVar("M", bound=BaseModel)
 
@@ -43,6 +45,7 @@ QUERIES: dict[str, tuple[type[BaseModel], Any]] = {
     "annotation_stats": (ClusterFilter, stats.annotations),
     "cooccurrence": (Cooccurrence, stats.cooccurrence),
     "timings": (Timings, stats.timings),
+    "playback": (Playback, playback),
 }
 """Every query by name: the model of its question and the plan that answers it. The HTTP
 API and the CLI are generated from this table."""

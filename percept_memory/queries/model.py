@@ -408,3 +408,26 @@ class Timings(Strict):
     robot: Name | None = None
     after: Time | None = None
     before: Time | None = None
+
+
+Step = Literal["at", "first", "previous", "next", "last", "event", "failure"]
+
+
+class Playback(Strict):
+    """A robot's scenes as a sequence: the scene at a moment, or a step from it."""
+
+    robot: Name
+    map: Name | None = Field(default=None, description=(
+        "only the robot's scenes in this map (default: in every map)"))
+    t: Time | None = Field(default=None, description="the moment (default: now)")
+    step: Step = Field(default="at", description=(
+        "at: the scene at or before t (the first, before it); first, previous, next, last; "
+        "event: the next scene after t with an event of `object`; failure: the next scene "
+        "after t where an annotator failed (an error line in its log)"))
+    object: Id | None = Field(default=None, description="with step=event: the object")
+
+    @model_validator(mode="after")
+    def _object_with_event(self):
+        if (self.step == "event") != (self.object is not None):
+            raise ValueError("give object with step=event, and only then")
+        return self

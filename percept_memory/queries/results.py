@@ -178,3 +178,18 @@ class Timing(BaseModel):
 class TimingStats(BaseModel):
     scenes: int
     annotators: list[Timing]
+
+
+class Frame(BaseModel):
+    """One scene of a robot's sequence, and where the sequence goes from it."""
+
+    scene_id: Id
+    robot: str
+    map: str
+    time: Nanoseconds
+    clusters: int
+    failed: list[str] = []  # the annotators with an error line in the scene's log
+    first: Nanoseconds  # the sequence's first scene (the robot's, in the map if one is given)
+    last: Nanoseconds  # and its last
+    previous: Nanoseconds | None = None  # the sequence's scene before this one
+    next: Nanoseconds | None = None  # and after it

@@ -41,6 +41,7 @@ from .guard import Guard
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
+from .scene3d import cloud_router
 
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
@@ -138,6 +139,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     app.include_router(query_router(QueryEngine(store, settings)))
     app.include_router(export_router(store, settings))
+    app.include_router(cloud_router(store))
 
     @app.get("/api/pipeline", summary="How far the belief of each map is",
              responses=READ_ERRORS)

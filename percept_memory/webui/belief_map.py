@@ -12,6 +12,8 @@ to the round times of a time axis under the slider (time_axis.py).
 The page shows one map at a time (`map`, default: the map of the newest scene), chosen from a
 list: regions, objects and the belief are per map. The store keeps no outlines of regions, so
 a region is drawn as the box around the positions of the map's objects last seen in it.
+With `view=3d` the page adds the same in 3D (scene3d.py); the playback page draws the belief
+of its scene's moment as this page does (drawn_belief).
 """
 
 from __future__ import annotations
@@ -32,8 +34,8 @@ from percept_memory.queries.model import Time
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.results import ObjectAt
 
-from . import time_axis
-from .html import PageError, bounded_int, page
+from . import scene3d, time_axis
+from .html import CSP, SCRIPT_CSP, PageError, bounded_int, page
 from .layout import RINGS, Box, Label, Layout
 
 SECOND = 1_000_000_000
@@ -107,44 +109,70 @@ class Crowd:
         return ", ".join(o.belief.name or "unnamed object" for o in self.objects)
 
 
+@dataclass
+class DrawnBelief:
+    """The objects believed in a map at a moment, drawn on its floor plan with labels that
+    never overlap (macros.html: belief_figure); those without a position listed apart."""
+
+    view: Projection
+    regions: list[DrawnRegion]
+    region_labels: dict[str, Label]
+    objects: list[DrawnObject]
+    crowds: list[Crowd]
+    unplaced: list[ObjectAt]
+
+    @property
+    def believed(self) -> list[ObjectAt]:
+        return [o.belief for o in self.objects] + self.unplaced
+
+
+def drawn_belief(store: MemoryStore, engine: QueryEngine, map_name: str, t: int,
+                 start: int) -> DrawnBelief:
+    """What the map page and the playback draw: QueryEngine.what_is_at on the floor plan,
+    labelled (lay_out), hidden objects fading with their age since start, the map's first
+    scene."""
+    believed = engine.what_is_at(map=map_name, t=t).objects
+    placed = [o for o in believed if o.position is not None]
+    view, regions = floor_plan(store, map_name, [o.position for o in placed])
+    seen = _last_seen(store, [o.object_id for o in placed if o.state == "hidden"], t)
+    objects = [DrawnObject(o, *view.point(o.position[0], o.position[1]),
+                           _opacity(seen.get(o.object_id), start, t)) for o in placed]
+    region_labels, crowds = lay_out(view, regions, objects)
+    return DrawnBelief(view, regions, region_labels, objects, crowds,
+                       [o for o in believed if o.position is None])
+
+
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
     router = APIRouter(include_in_schema=False, default_response_class=HTMLResponse)
 
     @router.get("/map")
-    async def map_page(request: Request, map: str = "", t: str = "",
-                       at: str = "") -> HTMLResponse:
-        maps = await run_in_threadpool(_maps, store)
+    async def map_page(request: Request, map: str = "", t: str = "", at: str = "",
+                       view: str = "") -> HTMLResponse:
+        in_3d = scene3d.wanted(view)
+        maps = await run_in_threadpool(map_names, store)
         if not maps:
             return page(request, "map.html", {"span": None})
         chosen = map or await run_in_threadpool(_newest_map, store)
         if chosen not in maps:
             raise PageError(404, f"no map named {chosen!r}")
-        span = await run_in_threadpool(_recorded_span, store, chosen)
-        moment = _moment(t, at) or span[1]
+        span = await run_in_threadpool(recorded_span, store, chosen)
+        moment = moment_of(t, at) or span[1]
 
         def load():
-            believed = engine.what_is_at(map=chosen, t=moment).objects
-            placed = [o for o in believed if o.position is not None]
-            hidden = [o.object_id for o in placed if o.state == "hidden"]
-            return believed, placed, floor_plan(store, chosen, [o.position for o in placed]), \
-                _neighbours(store, chosen, moment), _last_seen(store, hidden, moment)
+            belief = drawn_belief(store, engine, chosen, moment, span[0])
+            solid = scene3d.map_view(region_boxes(store, chosen),
+                                     belief.believed) if in_3d else None
+            return belief, _neighbours(store, chosen, moment), solid
 
         try:
-            believed, placed, (view, regions), (earlier, later), seen = \
-                await run_in_threadpool(load)
+            belief, (earlier, later), solid = await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
-        objects = [DrawnObject(o, *view.point(o.position[0], o.position[1]),
-                               _opacity(seen.get(o.object_id), span[0], moment))
-                   for o in placed]
-        region_labels, crowds = lay_out(view, regions, objects)
         return page(request, "map.html", {
-            "maps": maps, "map": chosen, "span": span, "t": moment, "view": view,
-            "regions": regions, "region_labels": region_labels, "objects": objects,
-            "crowds": crowds, "unplaced": [o for o in believed if o.position is None],
+            "maps": maps, "map": chosen, "span": span, "t": moment, "belief": belief,
             "axis": time_axis.axis(*span, moment, WIDTH),
-            "earlier": earlier, "later": later, "second": SECOND,
-        })
+            "earlier": earlier, "later": later, "second": SECOND, "view3d": solid,
+        }, policy=SCRIPT_CSP if in_3d else CSP)
 
     return router
 
@@ -154,7 +182,7 @@ def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width:
     """The map's regions drawn top-down, in a projection that holds them and these positions
     (metres: x, y and any more coordinates) in at most width x max_height pixels. The map page
     and the object page's track draw on it (macros.html: floor_plan)."""
-    boxes = _region_boxes(store, map_name)
+    boxes = region_boxes(store, map_name)
     xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
     ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
     view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
@@ -221,7 +249,7 @@ def _last_seen(store: MemoryStore, object_ids: list, t: int) -> dict:
     return {doc["_id"]: doc["time"] for doc in found}
 
 
-def _moment(t: str, at: str) -> int | None:
+def moment_of(t: str, at: str) -> int | None:
     """The moment the URL asks for, if any."""
     if t.strip() and at.strip():
         raise PageError(422, "give t or at, not both")
@@ -233,7 +261,7 @@ def _moment(t: str, at: str) -> int | None:
         raise PageError(422, f"t: {error.errors()[0]['msg']}") from None
 
 
-def _maps(store: MemoryStore) -> list[str]:
+def map_names(store: MemoryStore) -> list[str]:
     """The maps with a belief, by name."""
     return sorted(store.db[MAPS].distinct("_id"))
 
@@ -243,7 +271,7 @@ def _newest_map(store: MemoryStore) -> str | None:
     return newest and newest.get("map")
 
 
-def _recorded_span(store: MemoryStore, map_name: str) -> tuple[int, int]:
+def recorded_span(store: MemoryStore, map_name: str) -> tuple[int, int]:
     """The first and the last scene's time of the map, to whole seconds (the slider's ends)."""
     first, last = (store.scenes.find_one({"map": map_name}, {"timestamp": 1},
                                          sort=[("map", 1), ("timestamp", order)])
@@ -263,16 +291,18 @@ def _neighbours(store: MemoryStore, map_name: str, t: int) -> tuple[int | None, 
     return (before and before["timestamp"]), (after and after["timestamp"])
 
 
-def _region_boxes(store: MemoryStore,
-                  map_name: str | None) -> dict[str, tuple[list[float], list[float]]]:
-    """Per region of the map, the (x, y) box around its objects last seen there (by the
-    objects' map index)."""
+def region_boxes(store: MemoryStore,
+                 map_name: str | None) -> dict[str, tuple[list[float], list[float]]]:
+    """Per region of the map, the (x, y, z) box around its objects last seen there (by the
+    objects' map index), widened by PAD_M on the ground; z is 0 for positions without one."""
+    z = {"$ifNull": [{"$arrayElemAt": ["$position", 2]}, 0.0]}
     found = store.db[OBJECTS].aggregate([
         {"$match": {"map": map_name, "region": {"$type": "string"}, "x": {"$ne": None}}},
         {"$group": {"_id": "$region", "x0": {"$min": "$x"}, "y0": {"$min": "$y"},
-                    "x1": {"$max": "$x"}, "y1": {"$max": "$y"}}},
+                    "z0": {"$min": z}, "x1": {"$max": "$x"}, "y1": {"$max": "$y"},
+                    "z1": {"$max": z}}},
         {"$sort": {"_id": 1}},
         {"$limit": MAX_REGIONS},
     ])
-    return {b["_id"]: ([b["x0"] - PAD_M, b["y0"] - PAD_M], [b["x1"] + PAD_M, b["y1"] + PAD_M])
-            for b in found}
+    return {b["_id"]: ([b["x0"] - PAD_M, b["y0"] - PAD_M, b["z0"]],
+                       [b["x1"] + PAD_M, b["y1"] + PAD_M, b["z1"]]) for b in found}

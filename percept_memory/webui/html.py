@@ -3,9 +3,9 @@ the error page, and the parsing of URL parameters (each bad one refused with a 4
 naming it, never a 500).
 
 Every page sends a Content-Security-Policy that allows nothing but this site's own images and
-style sheet; the live page and the API page (Swagger UI) alone may also run this site's scripts
-and fetch from it, a scene page with images its viewer script. No page sends a Referer to the
-links it leads to.
+style sheet; the live page, the playback page, the 3D views (`view=3d`) and the API page
+(Swagger UI) alone may also run this site's scripts (files, never inline) and fetch from it, a
+scene page with images its viewer script. No page sends a Referer to the links it leads to.
 Jinja2 escapes every value, so OCR text, web results and annotator logs are shown, never run.
 """
 

@@ -1,8 +1,10 @@
 """The HTML pages (issue 7, after the thesis' web page, Blodow 6.6 / fig. 6.11): a scene with
 its image, cluster boxes, log, relations and annotations, and a cluster; `mount_pages` adds
 them and the pages of the other modules (scene log, object history, search, map, annotators,
-enrichment, live). Server-rendered; the scene's images alone run a small script, to switch
-what is drawn on them and zoom (viewer.py; html.py: what pages share).
+enrichment, live, playback). Server-rendered, no JavaScript (html.py: what pages share) but
+for the scene's images, whose small script switches what is drawn on them and zooms
+(viewer.py), the 3D view a scene or map page adds with `view=3d` (scene3d.py), the playback's
+steps without reload and the live page's updates.
 """
 
 from __future__ import annotations
@@ -29,12 +31,14 @@ from . import (
     history,
     live,
     pipeline,
+    playback,
     render,
+    scene3d,
     scene_log,
     search,
     viewer,
 )
-from .html import CSP, HERE, LIST_FIELDS, VIEWER_CSP, PageError, page, parse_id
+from .html import CSP, HERE, LIST_FIELDS, SCRIPT_CSP, VIEWER_CSP, PageError, page, parse_id
 from .images import display_png
 
 THUMB_SIDE = 160
@@ -54,7 +58,7 @@ def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
     for router in (scene_log.routes(store), page_routes(store), history.routes(store),
                    search.routes(store, engine), belief_map.routes(store, engine),
                    annotators.routes(store, engine), enrichment.routes(store),
-                   pipeline.routes(store),
+                   pipeline.routes(store), playback.routes(store, engine),
                    live.routes(store)):
         app.include_router(router)
 
@@ -72,7 +76,8 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return await run_in_threadpool(_found, get, parse_id(text, kind))
 
     @router.get("/scenes/{scene_id}")
-    async def scene_page(request: Request, scene_id: str) -> HTMLResponse:
+    async def scene_page(request: Request, scene_id: str, view: str = "") -> HTMLResponse:
+        in_3d = scene3d.wanted(view)
         scene = await stored(store.get_scene, scene_id, "scene")
 
         def load() -> tuple[dict, dict]:
@@ -85,11 +90,12 @@ def page_routes(store: MemoryStore) -> APIRouter:
 
         names, explained = await run_in_threadpool(load)
         plan = None if scene.images else await run_in_threadpool(_plan, store, scene)
+        solid = await run_in_threadpool(scene3d.scene_view, scene, names) if in_3d else None
         return page(request, "scene.html", {
             "scene": scene, "names": names, "events": explained,
             "overlays": viewer.overlays(scene, names),
-            "log": render.log_by_annotator(scene.log), "plan": plan,
-        }, policy=VIEWER_CSP if scene.images else CSP)
+            "log": render.log_by_annotator(scene.log), "plan": plan, "view3d": solid,
+        }, policy=SCRIPT_CSP if in_3d else VIEWER_CSP if scene.images else CSP)
 
     @router.get("/clusters/{cluster_id}")
     async def cluster_page(request: Request, cluster_id: str) -> HTMLResponse:

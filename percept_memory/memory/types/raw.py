@@ -117,6 +117,12 @@ class CameraInfo(Model):
     def principal_point(self) -> tuple[float, float]:
         return self.k[2], self.k[5]
 
+    def back_project(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """The (N, 3) points in the camera frame seen at pixels (u, v) at depths z (metres):
+        how a depth image becomes a cloud."""
+        (fx, fy), (cx, cy) = self.focal, self.principal_point
+        return np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=-1)
+
 
 @stored_type("pm.raw.Image")
 class Image(Model):
@@ -215,3 +221,13 @@ class PointCloud(Model):
         if self.points.dtype.names is None:
             return np.asarray(self.points, dtype=float)
         return np.stack([self.points[c].astype(float) for c in "xyz"], axis=-1)
+
+    def bgr(self) -> np.ndarray | None:
+        """The (N, 3) uint8 colours of PCL's packed `rgb`/`rgba` field (blue, green, red, as
+        OpenCV orders them), or None when the points have no colour."""
+        name = next((n for n in ("rgb", "rgba") if n in (self.points.dtype.names or ())), None)
+        if name is None:
+            return None
+        packed = np.ascontiguousarray(self.points[name]).view(np.uint32)
+        return np.stack([packed & 255, (packed >> 8) & 255, (packed >> 16) & 255],
+                        axis=1).astype(np.uint8)

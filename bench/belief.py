@@ -51,7 +51,9 @@ each truth row; a nudge counts as a move whatever its size. Beyond it:
   table they were last seen on, which a memory could know), the position error (2D), and for
   those not moved since their last observation the share within 0.1 m;
 - time per scene: the POST with wait=belief as the client sees it (p50, p95), and p95 by
-  objects in the map's memory (buckets of 25; target at >= 100 objects).
+  objects in the map's memory (buckets of 25; target at >= 100 objects, which the 15 objects
+  of the protocol never reach: a crowded world of --crowded objects, the same crowding of
+  the tables, runs --crowded-scenes scenes at the lowest noise for it, scored too).
 Per noise level: every seed alone and all seeds pooled (counts summed), with the spread of the
 headline numbers over seeds.
 
@@ -140,8 +142,8 @@ class LongWorld(World):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        self.sides = np.stack([self.colour.copy(), self.rng.random((OBJECTS, 3))], axis=1)
-        self.side = np.zeros(OBJECTS, dtype=int)
+        self.sides = np.stack([self.colour.copy(), self.rng.random((self.objects, 3))], axis=1)
+        self.side = np.zeros(self.objects, dtype=int)
 
     def nudge_spot(self, o: int) -> np.ndarray | None:
         """A free spot NUDGE away from o on its own table, or None."""
@@ -162,7 +164,7 @@ class LongWorld(World):
         for _ in range(count):
             touched = {o for _, o in done}
             on = [o for o in self.place if o not in touched]
-            off = [o for o in range(OBJECTS) if o not in self.place and o not in touched]
+            off = [o for o in range(self.objects) if o not in self.place and o not in touched]
             kinds = (["put"] if off and len(self.place) < self.limit else []) + (
                 ["remove", "move", "nudge", "turn"] if on else [])
             if not kinds:
@@ -344,9 +346,10 @@ class Extra:
 class LongRun(Run):
     """identity.Run's bookkeeping and scoring on one LongWorld, scenes seen over HTTP."""
 
-    def __init__(self, seed: int, noise: float, decider: OverHttp, where_samples: int) -> None:
+    def __init__(self, seed: int, noise: float, decider: OverHttp, where_samples: int,
+                 objects: int = OBJECTS) -> None:
         # not Run.__init__: that makes a fresh World per (actions, limit)
-        self.world = LongWorld(np.random.default_rng([seed, 0]), max(LIMITS))
+        self.world = LongWorld(np.random.default_rng([seed, 0]), max(LIMITS), objects)
         self.noise_rng = np.random.default_rng([seed, round(noise * 1e4)])
         self.sample_rng = np.random.default_rng([seed, round(noise * 1e4), 1])
         self.noise, self.decider, self.jitter = noise, decider, VIEW_JITTER
@@ -375,7 +378,8 @@ class LongRun(Run):
         order = self.world.rng.permutation(len(combinations))
         per, more = divmod(scenes, len(combinations))
         for index, c in enumerate(order):
-            self.actions, self.world.limit = combinations[c]
+            self.actions, limit = combinations[c]
+            self.world.limit = limit * self.world.objects // OBJECTS  # the same crowding
             for _ in range(per + (index < more)):
                 self.step(score, extra)
                 if progress:
@@ -627,10 +631,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--where-samples", type=int, default=2, help="where-is asks per scene")
     parser.add_argument("--kitchen-days", type=int, default=7)
     parser.add_argument("--no-real-data", action="store_true")
+    parser.add_argument("--crowded", type=int, default=120, metavar="OBJECTS",
+                        help="a world of this many objects, for the time per scene with 100 "
+                             "and more in memory (0: not run)")
+    parser.add_argument("--crowded-scenes", type=int, default=400)
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for CI")
     args = parser.parse_args(argv)
     if args.quick:
         args.scenes, args.levels, args.seeds, args.kitchen_days = 40, [0.025], [1], 1
+        args.crowded, args.crowded_scenes = 30, 20
     if set(args.seeds) & set(args.tune_seeds):
         parser.error("--seeds and --tune-seeds must not overlap")
     seeds = args.tune_seeds if args.tune else args.seeds
@@ -660,6 +669,18 @@ def main(argv: list[str] | None = None) -> int:
                                                if all(h[k] is not None for h in heads)},
                 "seeds_pooled": result, "per_seed": per_seed}
             timings += pooled_extra.timings
+        crowded = None
+        if args.crowded:
+            score, extra = Score(), Extra()
+            task = bar.add_task(f"{args.crowded} objects", total=args.crowded_scenes)
+            LongRun(seeds[0], min(args.levels), OverHttp(
+                server, f"belief/crowded{args.crowded}/seed{seeds[0]}"), 0, args.crowded).run(
+                args.crowded_scenes, score, extra, bar, task)
+            crowded = {"objects": args.crowded, "scenes": args.crowded_scenes, "seed": seeds[0],
+                       "noise": min(args.levels), "headline": headline(summary(
+                           min(args.levels), score, extra)),
+                       "time_per_scene_http": timing(extra.timings)}
+            timings += extra.timings
         real = None if args.no_real_data else real_data(server, args.kitchen_days, seeds[0])
         pending = server.pending
     lowest = levels[str(min(args.levels))]["seeds_pooled"]
@@ -679,6 +700,7 @@ def main(argv: list[str] | None = None) -> int:
                      "where_is_samples_per_scene": args.where_samples},
         "targets_at_lowest_noise": targets(lowest, timings),
         "levels": levels,
+        "crowded_world": crowded,
         "time_per_scene_http_all_levels": timing(timings),
         "answers_before_belief_current": pending,
         "real_data": real,

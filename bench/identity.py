@@ -143,13 +143,14 @@ def table_of(position: np.ndarray) -> int:
 class World:
     rng: np.random.Generator
     limit: int
-    colour: np.ndarray = field(init=False)  # OBJECTS x 3
+    objects: int = OBJECTS  # in the world, on the tables or not
+    colour: np.ndarray = field(init=False)  # objects x 3
     place: dict[int, np.ndarray] = field(default_factory=dict)  # on a table: 2D position
 
     def __post_init__(self) -> None:
-        self.colour = self.rng.random((OBJECTS, 3))
+        self.colour = self.rng.random((self.objects, 3))
         start = int(self.rng.integers((self.limit + 1) // 2, self.limit + 1))
-        for o in self.rng.permutation(OBJECTS)[:start]:
+        for o in self.rng.permutation(self.objects)[:start]:
             self.place[int(o)] = self.free_spot()
 
     def free_spot(self, away_from: np.ndarray | None = None, ignore: int | None = None):
@@ -169,7 +170,7 @@ class World:
         touched: set[int] = set()
         for _ in range(count):
             on = [o for o in self.place if o not in touched]
-            off = [o for o in range(OBJECTS) if o not in self.place and o not in touched]
+            off = [o for o in range(self.objects) if o not in self.place and o not in touched]
             kinds = []
             if off and len(self.place) < self.limit:
                 kinds.append("put")

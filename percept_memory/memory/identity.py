@@ -67,8 +67,9 @@ class Parameters:
     # objects are learnt from scenes (bench/belief.py, tune seeds; was 4.1 on identity.py's)
     prior_appear: float = 0.3
     prior_gone: float = 2.575  # odds of "an object in view is not there any more"
-    # looks-the-same odds beyond which another known object is a lookalike (Decision)
-    lookalike_odds: float = 50.0
+    # looks-the-same odds beyond which another known object is a lookalike (Decision): high,
+    # or a crowded world of look-alikes merges distinct objects (bench/belief.py --crowded)
+    lookalike_odds: float = 1000.0
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).

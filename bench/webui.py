@@ -77,8 +77,9 @@ SEARCHES = {
 }
 
 
-def search_pages(args: argparse.Namespace) -> dict:
-    """Render times of the search page over a memory of args.search_clusters clusters."""
+def search_pages(args: argparse.Namespace, big: Scene) -> dict:
+    """Render times of the search page over a memory of args.search_clusters clusters, and of
+    the scene viewer, its 3D view and a cluster page of `big` stored in that memory."""
     with scratch_store(args.keep) as store:
         start = time.perf_counter()
         reuse = args.keep and store.clusters.estimated_document_count() == args.search_clusters
@@ -96,8 +97,18 @@ def search_pages(args: argparse.Namespace) -> dict:
         first = client.get("/search?text=cereal").text
         second = html.unescape(re.search(r'class="next" href="([^"]+)"', first).group(1))
         pages["text_second_page"] = timed(client, second, args.repeat)
+        in_memory = None
+        if not args.keep:  # (a kept memory stays as bench/queries.py builds it)
+            store.put_scenes([big])
+            in_memory = {"scene_page_20_clusters": timed(client, f"/scenes/{big.id}",
+                                                         args.repeat),
+                         "scene_page_3d": timed(client, f"/scenes/{big.id}?view=3d",
+                                                args.repeat),
+                         "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}",
+                                               args.repeat)}
         return {"clusters": store.clusters.estimated_document_count(),
-                "build_s": None if reuse else round(built, 1), "pages": pages}
+                "build_s": None if reuse else round(built, 1), "pages": pages,
+                "scene_pages_in_this_memory": in_memory}
 
 
 def map_page(args: argparse.Namespace) -> dict:
@@ -196,7 +207,7 @@ def main() -> None:
                                         args.repeat)
     result["map_page"] = map_page(args)
     if args.search_clusters:
-        result["search_page"] = search_pages(args)
+        result["search_page"] = search_pages(args, big)
     result["solid_views"] = solid_views(args.repeat)
     result["playback"] = playback(args.playback_scenes, args.repeat)
     print_json(result)

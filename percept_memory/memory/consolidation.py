@@ -50,9 +50,10 @@ DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
 RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
-# what deciding reads of a candidate object (its names only once it is seen again)
+# what deciding reads of a candidate object, with the label weights its names are summed in
 CANDIDATE_FIELDS = {"state": 1, "position": 1, "place_count": 1, "region": 1,
-                    "last_cluster": 1, "last_seen": 1, "first_seen": 1, "views": 1}
+                    "last_cluster": 1, "last_seen": 1, "first_seen": 1, "views": 1,
+                    "label_weights": 1}
 MAX_PLACE_COUNT = 20  # observations an object's place is the mean of, at most
 VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
@@ -130,10 +131,6 @@ class Consolidation:
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in scene.clusters}
-        seen_again = [d.object for d in decisions if d.object is not None and d.key in clusters]
-        for doc in self.objects.find({"_id": {"$in": seen_again}}, {"label_weights": 1},
-                                     session=session):
-            by_id[doc["_id"]]["label_weights"] = doc.get("label_weights", {})
         objects, events, links = [], [], []
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)

@@ -1191,3 +1191,17 @@ def test_a_time_axis_has_a_few_round_ticks_for_any_span(seconds):
     assert xs == sorted(xs) and axis.ends[0] <= xs[0] and xs[-1] <= axis.ends[1]
     assert all(tick.t % 10**9 == 0 and start <= tick.t for tick in axis.ticks)
     assert re.match(r"Mar 0[45]|20\d\d", axis.ticks[0].label)  # the first one says its date
+
+
+def test_the_scene_cluster_and_object_pages_read_only_by_index(client, store, week):
+    """Their cost must not grow with the memory (bench/webui.py times them among 1,000,000
+    clusters): with collection scans forbidden in mongod, each still answers."""
+    scene = sorted(week.scenes, key=lambda s: s.timestamp)[-1]
+    cluster = store.get_cluster(scene.clusters[0].id)
+    store.client.admin.command("setParameter", 1, notablescan=True)
+    try:
+        for path in (f"/scenes/{scene.id}", f"/clusters/{cluster.id}",
+                     f"/objects/{cluster.object_id}"):
+            assert client.get(path).status_code == 200, path
+    finally:
+        store.client.admin.command("setParameter", 1, notablescan=False)

@@ -104,7 +104,9 @@ def page_routes(store: MemoryStore) -> APIRouter:
         def load() -> tuple[dict | None, dict | None, list[dict], dict]:
             scene = store.scenes.find_one({"_id": cluster.scene_id}, LIST_FIELDS)
             believed = objects.find_one({"_id": cluster.object_id}) if cluster.object_id else None
-            explained = list(events.find({"cluster_id": cluster.id}))
+            # by the events' scene index (cluster_id alone has none: a scan of all events)
+            explained = list(events.find({"scene_id": cluster.scene_id,
+                                          "cluster_id": cluster.id}))
             considered = [a["object_id"] for e in explained for a in e.get("alternatives", [])
                           if a.get("object_id")]
             names = {o["_id"]: o.get("name") for o in objects.find({"_id": {"$in": considered}},

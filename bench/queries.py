@@ -31,8 +31,9 @@ from scratch import print_json, scratch_store
 
 from percept_memory.demo import kitchen_week as kw
 from percept_memory.memory import documents, search_keys
-from percept_memory.memory.schema import CLUSTERS, EVENTS, OBJECTS
+from percept_memory.memory.schema import CLUSTERS, EVENTS, MAPS, OBJECTS
 from percept_memory.memory.store import MemoryStore, vocabulary_upserts
+from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
 KITCHENS = 50
@@ -97,6 +98,7 @@ class World:
         self.seen[o] += 1
         return explanation
 
+MAP = "building"  # the map of the built memory's objects and events
 
 def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000) -> World:
     rng = np.random.default_rng(5)
@@ -125,8 +127,9 @@ def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000)
                       "region": world.region_name(region), **search_keys.place(position)}
             clusters.append({**template, "_id": cluster_id, "scene_id": scene_id,
                              "object_id": world.ids[o], "search": search})
-            event = {"object_id": world.ids[o], "scene_id": scene_id, "cluster_id": cluster_id,
-                     "time": t, "robot": "pr2", "explanation": explanation,
+            event = {"map": MAP, "object_id": world.ids[o], "scene_id": scene_id,
+                     "cluster_id": cluster_id, "time": t, "robot": "pr2",
+                     "explanation": explanation,
                      "probability": 0.9, "alternatives": [], "position": position,
                      "region": search["region"]}
             events.append(event)
@@ -138,9 +141,13 @@ def build(store: MemoryStore, count: int, progress: Progress, batch: int = 5000)
         {"_id": world.ids[o], "name": e["names"][0] if e["names"] else None,
          "names": e["names"], "label_weights": {}, "state": "present", "first_seen": START,
          "last_seen": e["time"], "last_scene": e["scene_id"], "last_cluster": e["cluster_id"],
-         "position": e["position"], "region": e["region"], "robot": "pr2",
-         "observations": world.seen[o]}
+         "position": e["position"], "x": e["position"][0], "y": e["position"][1], "map": MAP,
+         "region": e["region"], "robot": "pr2", "observations": world.seen[o]}
         for o, e in last.items()])
+    # the map's first and last scene (its time span) and its belief's entry, as a map has them
+    store.put_scenes([Scene(timestamp=START + i * count * SECONDS_PER_CLUSTER * kw.SECOND,
+                            robot="pr2", map=MAP) for i in (0, 1)])
+    store.db[MAPS].update_one({"_id": MAP}, {"$set": {"consolidated": None}}, upsert=True)
     indexing = progress.add_task("indexes", total=None)
     store.prepare()
     progress.update(indexing, total=1, completed=1)

@@ -37,7 +37,7 @@ import numpy as np
 from bson import ObjectId
 from fastapi.testclient import TestClient
 from ingest import KITCHEN, kitchen_image  # bench/ingest.py, beside this file
-from queries import build  # bench/queries.py
+from queries import MAP, build  # bench/queries.py
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from scratch import print_json, scratch_store
@@ -105,7 +105,8 @@ def search_pages(args: argparse.Namespace, big: Scene) -> dict:
                          "scene_page_3d": timed(client, f"/scenes/{big.id}?view=3d",
                                                 args.repeat),
                          "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}",
-                                               args.repeat)}
+                                               args.repeat),
+                         "map_page": timed(client, f"/map?map={MAP}", args.repeat)}
         return {"clusters": store.clusters.estimated_document_count(),
                 "build_s": None if reuse else round(built, 1), "pages": pages,
                 "scene_pages_in_this_memory": in_memory}

@@ -42,11 +42,8 @@ class View:
         """For each point (rows of x, y, z; NaN for an unknown place), whether the view saw its
         place; all False when the scene does not say where its camera looked."""
         points = np.asarray(points, dtype=float).reshape(-1, 3)
-        region = self.region
-        if region is not None and region.center is not None:
-            return np.linalg.norm(points - region.center, axis=1) <= region.radius
-        if region is not None:
-            return np.all((points >= region.box_min) & (points <= region.box_max), axis=1)
+        if self.region is not None:
+            return self.region.contains(points)
         if not self.known:
             return np.zeros(len(points), dtype=bool)
         local = points @ self.to_camera[:3, :3].T + self.to_camera[:3, 3]

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
@@ -84,8 +82,8 @@ class SpatialVolume(Hypothesis):
             raise ValueError("box_min must not exceed box_max")
         return self
 
-    def contains(self, point: Vec3) -> bool:
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """For each point (rows of x, y, z; NaN where unknown), whether it lies inside."""
         if self.center is not None:
-            return math.dist(point, self.center) <= self.radius
-        return all(lo <= x <= hi for lo, x, hi in zip(self.box_min, point, self.box_max,
-                                                      strict=True))
+            return np.linalg.norm(points - np.asarray(self.center), axis=1) <= self.radius
+        return np.all((points >= self.box_min) & (points <= self.box_max), axis=1)

@@ -195,9 +195,7 @@ class _Plan:
                 doc[key] = encoder(value, ctx)
             except (ConversionError, TypeError, ValueError) as error:
                 raise ConversionError(f"{self.name}.{key}: {error}") from error
-        private = obj.__pydantic_private__
-        unknown = private.get("_unknown_fields") if private else None
-        if unknown:
+        if unknown := obj.unknown_fields():
             for key, value in unknown.items():
                 doc.setdefault(key, value)
         return doc
@@ -221,7 +219,7 @@ class _Plan:
         if len(doc) > len(values) + 1:
             unknown = {k: v for k, v in doc.items() if k not in self.keys}
             if unknown:
-                obj._unknown_fields = unknown
+                obj.keep_unknown_fields(unknown)
         return obj
 
 

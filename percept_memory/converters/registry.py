@@ -11,7 +11,7 @@ import difflib
 from collections.abc import Callable
 from typing import TypeVar
 
-from pydantic import BaseModel, PrivateAttr
+from pydantic import BaseModel
 
 T = TypeVar("T", bound=type)
 
@@ -24,10 +24,23 @@ class Typed(BaseModel):
     """Base of every stored model.
 
     Keeps the fields a newer version of the program wrote that this version does not know,
-    so reading and writing back an object never loses them.
+    so reading and writing back an object never loses them (`unknown_fields`).
     """
 
-    _unknown_fields: dict | None = PrivateAttr(default=None)
+    def unknown_fields(self) -> dict | None:
+        """The fields a newer program wrote that this one does not know, if any."""
+        private = self.__pydantic_private__
+        return private.get(UNKNOWN_FIELDS) if private else None
+
+    def keep_unknown_fields(self, fields: dict) -> None:
+        # In pydantic's private slot, but not declared as a PrivateAttr: a declared one makes
+        # pydantic call a Python hook for every instance it builds (a fifth of validating a
+        # scene), though almost no object has unknown fields.
+        private = {**(self.__pydantic_private__ or {}), UNKNOWN_FIELDS: fields}
+        object.__setattr__(self, "__pydantic_private__", private)
+
+
+UNKNOWN_FIELDS = "_unknown_fields"
 
 
 def register_type(name: str, *, aliases: tuple[str, ...] = ()) -> Callable[[T], T]:

@@ -169,7 +169,7 @@ class Model(Typed):
             return NotImplemented
         return all(
             _same(self.__dict__[name], other.__dict__[name]) for name in type(self).model_fields
-        ) and _same(self._unknown_fields or {}, other._unknown_fields or {})
+        ) and _same(self.unknown_fields() or {}, other.unknown_fields() or {})
 
     __hash__ = None  # type: ignore[assignment]
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Iterable, Mapping
+from functools import lru_cache
 
 from bson.int64 import Int64
 
@@ -31,18 +32,33 @@ _CAMEL = re.compile(r"(?<=[a-z])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])")  # fooBar, 
 _JOINED = re.compile(r"(?<=[^\W_])[_-]+(?=[^\W_])")  # snake_case, kebab-case
 
 
-def words(text: str) -> list[str]:
+def words(text: str) -> tuple[str, ...]:
     """The terms of a text, casefolded, in order: "Kellogg's Corn-Flakes" -> kellogg, s, corn,
     flakes. Letters and digits only, so a term is never query syntax. Identifiers are words
     too: "SiggBottle" and "sigg_bottle" -> sigg, bottle, as a person would say them."""
-    return _WORD.findall(_CAMEL.sub(" ", text).casefold())
+    return _words_of_short(text) if len(text) <= SHORT else _words(text)
 
 
 def normal_label(label: str) -> str:
     """A label as the name it is stored and found by: its identifier parts as words, casefolded,
     single-spaced ("SiggBottle", "sigg_bottle", " Sigg  bottle" -> "sigg bottle"); other
     punctuation stays ("kellogg's")."""
+    return _normal_short(label) if len(label) <= SHORT else _normal(label)
+
+
+def _words(text: str) -> tuple[str, ...]:
+    return tuple(_WORD.findall(_CAMEL.sub(" ", text).casefold()))
+
+
+def _normal(label: str) -> str:
     return " ".join(_JOINED.sub(" ", _CAMEL.sub(" ", label)).casefold().split())
+
+
+# Every stored cluster's labels and texts go through these, and they repeat (class names,
+# brands, annotator output): short ones are remembered, a bounded number of them.
+SHORT = 200
+_words_of_short = lru_cache(maxsize=16384)(_words)
+_normal_short = lru_cache(maxsize=16384)(_normal)
 
 
 def misspellable(word: str) -> bool:
@@ -54,7 +70,7 @@ def misspellable(word: str) -> bool:
 def one_word(label: str) -> bool:
     """Whether a label is a single term as it stands ("cereal", not "Ja!" or "corn flakes"):
     found by that term itself, it needs no entry mapping its words to it."""
-    return words(label) == [label]
+    return words(label) == (label,)
 
 
 def trigrams(word: str) -> list[str]:

@@ -9,7 +9,7 @@ in-process >= 2,000 clusters/s; HTTP >= 70 % of the in-process rate of the same 
 ratios are printed: `consolidator_apart` compares like with like (the in-process run stores
 scenes without consolidating them), `consolidator_in_server` is what a default `pmem serve`
 gives on the same cores, consolidating as it goes. All write to scratch databases on the
-same mongod, dropped afterwards.
+same mongod, dropped afterwards. This process collects garbage as pmem's do (collect_less).
 
 Usage: python bench/ingest.py [--scenes N] [--batch N] [--http-scenes N]
 """
@@ -32,6 +32,7 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import print_json, scratch_store
 
+from percept_memory.cli import collect_less
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.store import MemoryStore
@@ -172,6 +173,7 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=32)
     parser.add_argument("--http-scenes", type=int, default=300)
     args = parser.parse_args()
+    collect_less()
     image = kitchen_image()
     with Progress(transient=True, console=Console(stderr=True)) as progress:
         with scratch_store() as store:

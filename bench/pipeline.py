@@ -32,6 +32,7 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import print_json, scratch_store
 
+from percept_memory.cli import collect_less
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
 
@@ -116,6 +117,7 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=10.0, help="scenes/s posted in (b)")
     parser.add_argument("--seed", type=int, default=11)
     args = parser.parse_args()
+    collect_less()  # as `pmem consolidate` does
     with Progress(transient=True, console=Console(stderr=True)) as progress:
         kitchen = kitchen_week.generate(days=args.days, seed=args.seed).scenes
         synthetic = scenes(args.synthetic_scenes, 1_700_000_000_000_000_000, kitchen_image(),

@@ -16,10 +16,12 @@ each stage's writes land exactly once or not at all, whoever dies when.
   GET /api/pipeline, the /pipeline page), and the scenes behind it go on: one bad scene never
   stops a robot's memory. A held scene is retried by hand (`pmem pipeline --retry`).
 - Ingest first: a consolidator thread shares the interpreter with the server it runs in, so it
-  gives way to scenes being stored there (`ingesting`): it waits while a batch is being
-  stored (at most YIELD_S) and takes one scene at a time until ingest has paused for BUSY_S.
-  Everything is still consolidated, in order, exactly once; a burst of ingest is just not
-  slowed to half its speed by it.
+  gives way to scenes being stored there (`ingesting`, around a whole request: reading,
+  parsing, storing): it waits while a batch is being stored and until ingest has been quiet
+  for QUIET_S (a client's turn between two requests is shorter), at most YIELD_S, and takes
+  one scene at a time until ingest has paused for BUSY_S. Everything is still consolidated,
+  in order, exactly once; a burst of ingest is just not slowed by it (a robot that posts a
+  scene every 100 ms leaves it the gaps), and it catches up after the burst.
 - Late scenes: a scene older than the newest consolidated scene of its map (it arrived late,
   or was held and retried) rebuilds the map: the belief stages forget the map and every scene
   of the map is queued for them again. So the belief always equals what consolidating the
@@ -56,6 +58,7 @@ MAX_ATTEMPTS = 5
 BACKOFF_S = 0.5  # then 1, 2, 4 s: a failing scene holds its map about 8 s before it is held
 POLL_S = 0.25
 YIELD_S = 1.0  # the longest a consolidator thread waits for ingest to pause
+QUIET_S = 0.02  # ingest has paused when nothing was stored this long
 BUSY_S = 1.0  # after ingest, a consolidator thread takes one scene at a time this long
 ORDER = [("time", ASCENDING), ("_id", ASCENDING)]
 DUPLICATE_KEY = 11000
@@ -176,8 +179,8 @@ class Pipeline:
 
     @contextmanager
     def ingesting(self) -> Iterator[None]:
-        """Around storing a batch of scenes in this process: the pipeline's thread gives way
-        meanwhile (see `_give_way`)."""
+        """Around storing a batch of scenes in this process (or a whole request that brings
+        one): the pipeline's thread gives way meanwhile (see `_give_way`)."""
         with self._ingest:
             self._storing += 1
         try:
@@ -196,10 +199,17 @@ class Pipeline:
             return self.batch
         deadline = time.monotonic() + YIELD_S
         with self._ingest:
-            while self._storing and self._ingest.wait(max(deadline - time.monotonic(), 0)):
-                pass
+            while (pause := self._until_quiet()) > 0 and (left := deadline - time.monotonic()) > 0:
+                self._ingest.wait(min(pause, left))
             busy = self._storing or time.monotonic() - self._stored_at < BUSY_S
         return 1 if busy else self.batch
+
+    def _until_quiet(self) -> float:
+        """Seconds until ingest in this process will have been quiet for QUIET_S (inf while a
+        batch is being stored)."""
+        if self._storing:
+            return float("inf")
+        return QUIET_S - (time.monotonic() - self._stored_at)
 
     def run_forever(self) -> None:
         """Work whenever there is work, until stop(); a database outage is waited out."""

@@ -118,14 +118,15 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         lookups follow (see GET /api/pipeline), unless `wait=belief`. Scenes stored before
         (same robot and timestamp) keep their ids and come back with `created: false`."""
         _authorise(request, settings.token)
-        data, screened = _parse_json(await _read_body(request, max_bytes))
-        items = data if isinstance(data, list) else [data]
-        if not items:
-            raise ApiError(422, "the batch is empty")
-        try:
-            results = await run_in_threadpool(service.ingest_batch, items, screened=screened)
-        except IngestError as error:
-            raise ApiError(422, "the scenes are not valid", error.problems) from None
+        with service.pipeline.ingesting():  # the server's consolidator waits: the whole request
+            data, screened = _parse_json(await _read_body(request, max_bytes))
+            items = data if isinstance(data, list) else [data]
+            if not items:
+                raise ApiError(422, "the batch is empty")
+            try:
+                results = await run_in_threadpool(service.ingest_batch, items, screened=screened)
+            except IngestError as error:
+                raise ApiError(422, "the scenes are not valid", error.problems) from None
         answer: dict[str, Any] = {}
         if wait:
             answer["belief"] = "current" if await run_in_threadpool(

@@ -27,9 +27,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from functools import cache
+from functools import cache, cached_property
 from typing import Any
 
 import numpy as np
@@ -95,6 +95,18 @@ class Observation:
     key: Any  # the cluster id (or any label)
     position: Vec | None
     evidence: Sequence[Annotation | Hypothesis] = ()
+
+    @cached_property
+    def by_type(self) -> dict[type, list]:
+        """Its comparable evidence by type (grouped once: a remembered observation is
+        compared with every scene that may show its object)."""
+        return _by_type(self.evidence)
+
+    def at(self, position: Vec | None) -> Observation:
+        """The same look at another place (sharing its grouped evidence)."""
+        moved = replace(self, position=position)
+        moved.__dict__["by_type"] = self.by_type
+        return moved
 
 
 @dataclass
@@ -185,9 +197,10 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         rows = [(i, item) for i, group in enumerate(new) for item in group.get(kind, ())]
         cols = [(j, item) for j, group in enumerate(known) for item in group.get(kind, ())]
         values = similarities(kind, [item for _, item in rows], [item for _, item in cols])
-        best = np.full((len(rows), len(known)), np.nan)
-        for c, (j, _) in enumerate(cols):
-            best[:, j] = np.fmax(best[:, j], values[:, c])
+        best = np.full((len(rows), len(known)), np.nan)  # per known observation its best item
+        col_owners = np.array([j for j, _ in cols])  # ascending: cols are listed owner by owner
+        starts = np.flatnonzero(np.diff(col_owners, prepend=-1))
+        best[:, col_owners[starts]] = np.fmax.reduceat(values, starts, axis=1)
         compared = ~np.isnan(best)
         logs = np.log(np.clip(np.where(compared, best, 1.0), floor, 1.0))
         owners = np.array([i for i, _ in rows])
@@ -405,8 +418,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     # the cues of every pair, then their odds at once
     # the cues of every pair, then their odds at once; the new observations with each other
     # too (one scene's clusters are different objects: _learn)
-    groups = [_by_type(o.evidence) for o in new]
-    looked = looks(groups, [_by_type(k.last.evidence) for k in known] + groups,
+    groups = [o.by_type for o in new]
+    looked = looks(groups, [k.last.by_type for k in known] + groups,
                    params.evidence_floor)
     looked, looked_apart = looked[:, :len(known)], looked[:, len(known):]
     places = proximities([o.position for o in new], [k.last.position for k in known],
@@ -466,7 +479,7 @@ def _other_looks(new: Sequence[Observation], known: Sequence[Known],
     others = [(j, other) for j, k in enumerate(known) for other in k.others]
     if not others or not new:
         return odds, keys
-    looked = looks([_by_type(o.evidence) for o in new], [_by_type(o.evidence) for _, o in others],
+    looked = looks([o.by_type for o in new], [o.by_type for _, o in others],
                    params.evidence_floor)
     each = calibration.look.odds(looked)
     for c, (j, other) in enumerate(others):

@@ -85,8 +85,10 @@ class Consolidation:
         calibration = self._calibration(stored)
         places = self._places_of(map_name, stored and stored.get("version"), session)
         places.version = ObjectId()  # the version this transaction writes, if it commits
+        later = Later(self.events, self.store.clusters, session)
         for scene, arrived in self._scenes(scene_ids, session):
-            self.consolidate(scene, arrived, calibration, places, session)
+            self.consolidate(scene, arrived, calibration, places, later, session)
+        later.write()
         self.calibrations.replace_one(
             {"_id": map_name}, {"cues": calibration.to_document(), "version": places.version},
             upsert=True, session=session)
@@ -118,9 +120,10 @@ class Consolidation:
                 else Calibration.prior(self.params))
 
     def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
-                    places: Places, session) -> list[Decision]:
-        """Decide who is who in one stored scene and record it. `arrived`: cluster id -> how
-        many of its annotations came with the scene (the evidence to decide on)."""
+                    places: Places, later: Later, session) -> list[Decision]:
+        """Decide who is who in one stored scene and record it: the objects at once (the next
+        scene's candidates), its events and cluster links `later`. `arrived`: cluster id ->
+        how many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, places, session)
         seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
@@ -149,9 +152,9 @@ class Consolidation:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
         if objects:
             self.objects.bulk_write(objects, session=session)
-            self.events.insert_many(events, session=session)
-        if links:
-            self.store.clusters.bulk_write(links, session=session)
+        later.add(events, links)
+        if any(d.lookalikes for d in decisions):
+            later.write()  # what follows reads the events and moves the links
         for keep, twin in self._remembered_twice(decisions, clusters, session):
             self._merge(keep, twin, scene, places, session)
         return decisions
@@ -276,9 +279,31 @@ def _views(doc: dict) -> list:
     return doc.get("views") or [doc["last_cluster"]]
 
 
+class Later:
+    """A batch's events and cluster links, written together (two commands per batch instead
+    of two per scene); nothing in a batch reads them before `write`, but a merge."""
+
+    def __init__(self, events, clusters, session):
+        self.targets, self.session = (events, clusters), session
+        self.events: list[dict] = []
+        self.links: list[UpdateOne] = []
+
+    def add(self, events: list[dict], links: list[UpdateOne]) -> None:
+        self.events += events
+        self.links += links
+
+    def write(self) -> None:
+        events, clusters = self.targets
+        if self.events:
+            events.insert_many(self.events, session=self.session)
+        if self.links:
+            clusters.bulk_write(self.links, ordered=False, session=self.session)
+        self.events, self.links = [], []
+
+
 def _placed(last: Observation, place) -> Observation:
     """An object as last seen, at its estimated place."""
-    return last if place is None else Observation(last.key, tuple(place), last.evidence)
+    return last if place is None else last.at(tuple(place))
 
 
 def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params: Parameters,

@@ -30,7 +30,7 @@ import httpx2
 import numpy as np
 from rich.console import Console
 from rich.progress import Progress
-from scratch import print_json, scratch_store
+from scratch import footprint, print_json, scratch_store
 
 from percept_memory.cli import collect_less
 from percept_memory.ingest import synthetic
@@ -178,6 +178,7 @@ def main() -> None:
     with Progress(transient=True, console=Console(stderr=True)) as progress:
         with scratch_store() as store:
             local = in_process(store, args.scenes, args.batch, image, progress)
+            local["footprint"] = footprint(store)
         http = {}
         for consolidator in (True, False):
             with scratch_store() as store:

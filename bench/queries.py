@@ -27,7 +27,7 @@ import numpy as np
 from bson import ObjectId
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from scratch import print_json, scratch_store
+from scratch import footprint, print_json, scratch_store
 
 from percept_memory.demo import kitchen_week as kw
 from percept_memory.memory import documents, search_keys
@@ -259,6 +259,7 @@ def main() -> None:
             "build_s": None if reuse else round(built, 1),
             "samples_per_type": args.samples,
             "queries": measure(store, world, args.clusters, args.samples, progress),
+            "footprint": footprint(store),
         }
     print_json(result)
 

@@ -574,6 +574,65 @@ def consolidate(settings: Settings) -> None:
     click.echo("consolidator stopped", err=True)
 
 
+@main.group(invoke_without_command=True, epilog=example(
+    "pmem index", "pmem index add classification:confidence"))
+@click.pass_context
+def index(ctx: click.Context) -> None:
+    """List the annotation fields with an index of their own (add or drop one: one index serves
+    the field of that name of every type). Text, labels,
+    names, regions, robots, objects, time and places are always indexed; a predicate on any
+    other field (--where classification:confidence>0.8) is fast when the query is narrowed by
+    those, or when its field has an index."""
+    if ctx.invoked_subcommand is not None:
+        return
+    from percept_memory.memory.store import MemoryStore
+
+    with MemoryStore.open(ctx.obj) as store:
+        fields = store.field_indexes()
+    for field in fields:
+        click.echo(field)
+    if not fields:
+        click.echo("no field has an index of its own: pmem index add TYPE:FIELD adds one",
+                   err=True)
+
+
+@index.command(name="add", epilog=example("pmem index add classification:confidence"))
+@click.argument("field")
+@click.pass_obj
+def index_add(settings: Settings, field: str) -> None:
+    """Index FIELD (type:field, as --where names it) of every cluster's annotations."""
+    _change_field_index(settings, field, add=True)
+
+
+@index.command(name="drop", epilog=example("pmem index drop classification:confidence"))
+@click.argument("field")
+@click.pass_obj
+def index_drop(settings: Settings, field: str) -> None:
+    """Drop the index of FIELD added before."""
+    _change_field_index(settings, field, add=False)
+
+
+def _change_field_index(settings: Settings, field: str, add: bool) -> None:
+    from percept_memory.memory.store import MemoryStore
+    from percept_memory.queries.model import annotation_field
+
+    try:
+        _, path = annotation_field(field)
+    except ValueError as error:
+        raise click.ClickException(str(error)) from None
+    with MemoryStore.open(settings) as store:
+        if add:
+            click.echo(f"indexing the annotations' {path} over "
+                       f"{store.clusters.estimated_document_count()} clusters...", err=True)
+            changed = store.add_field_index(path)
+        else:
+            changed = store.drop_field_index(path)
+    if not changed:
+        raise click.ClickException(f"{path} {'has an index already' if add else 'has no index'}")
+    click.echo(f"{'indexed' if add else 'dropped the index of'} {path} (the field of that name "
+               "of every annotation type)")
+
+
 @main.command(epilog=example("pmem reindex"))
 @click.pass_obj
 def reindex(settings: Settings) -> None:

@@ -251,3 +251,27 @@ def test_an_import_stopped_by_a_bad_line_says_what_it_stored(mongo_uri, db_name,
     assert "stored before it: 32 new scenes" in line  # the batches of 32 before line 41's
     stored = store.scenes.count_documents({"timestamp": {"$gte": 7_100, "$lt": 7_145}})
     assert stored == 32
+
+
+def test_index_adds_lists_and_drops_a_field_index_and_says_when_it_did_nothing(
+        mongo_uri, db_name, store):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    store.drop_field_index("class_name")
+    added = pmem("index", "add", "classification:class_name", **env)
+    assert added.exit_code == 0, added.output
+    assert "indexed class_name" in added.output
+    assert "class_name" in pmem("index", **env).output.splitlines()
+    again = pmem("index", "add", "detection:name", **env)  # another field: its own index
+    assert again.exit_code == 0 and "name" in store.field_indexes()
+    twice = pmem("index", "add", "classification:class_name", **env)
+    assert twice.exit_code == 1 and "Error: class_name has an index already" in twice.output
+    for bad, said in (("colorhistogram:histogram", "not a scalar field"),
+                      ("classification", "expected type:field")):
+        refused = pmem("index", "add", bad, **env)
+        assert refused.exit_code == 1 and said in refused.output, refused.output
+        assert "Traceback" not in refused.output
+    assert pmem("index", "drop", "classification:class_name", **env).exit_code == 0
+    assert pmem("index", "drop", "detection:name", **env).exit_code == 0
+    gone = pmem("index", "drop", "classification:class_name", **env)
+    assert gone.exit_code == 1 and "has no index" in gone.output
+    assert store.field_indexes() == []

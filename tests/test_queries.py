@@ -5,6 +5,7 @@ checked with explain to use an index."""
 from __future__ import annotations
 
 import asyncio
+import re
 from collections import Counter
 
 import pytest
@@ -20,7 +21,7 @@ from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import Cluster, Location, Logo, Scene, Text
 from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
-from percept_memory.queries.model import ClusterQuery
+from percept_memory.queries.model import ClusterQuery, annotation_field
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.questions import STATE_OF
 
@@ -379,6 +380,8 @@ PATHS = [
 
 @pytest.mark.parametrize("name, query", PATHS, ids=[f"{n}-{i}" for i, (n, _) in enumerate(PATHS)])
 def test_every_query_path_uses_an_index(store, kitchen, name, query):
+    if "where" in query:  # a predicate alone is index-backed once its field has an index
+        store.add_field_index(annotation_field(query["where"].split("=")[0].split(">")[0])[1])
     plans: list = []
     getattr(QueryEngine(store, explain=plans), name)(**query)
     assert plans
@@ -401,3 +404,43 @@ def test_the_async_engine_gives_the_same_answers(store, kitchen, mongo_uri):
 
     sync = QueryEngine(store)
     assert asyncio.run(ask()) == [getattr(sync, name)(**query) for name, query in queries]
+
+
+def test_a_predicate_uses_its_field_index_with_bounds_on_type_and_field(store, kitchen):
+    store.drop_field_index("confidence")  # (an earlier test of this module may have added it)
+    assert store.add_field_index("confidence")
+    assert not store.add_field_index("confidence")  # there already
+    assert "confidence" in store.field_indexes()
+    for where, kind in (("shape:confidence>=0.9", "pm.annotation.Shape"),
+                        ("classification:confidence>=0.9", "pm.annotation.Classification")):
+        plans: list = []
+        hits = QueryEngine(store, explain=plans).clusters(where=where, limit=500).items
+        expected = stored(store, annotations={"$elemMatch": {
+            "_type": kind, "confidence": {"$gte": 0.9}}})
+        assert {h.id for h in hits} == {d["_id"] for d in expected} != set()
+        assert len(expected) < 500
+        (plan,) = plans
+        assert plan["indexes"] == ["field:confidence"] and "COLLSCAN" not in plan["stages"]
+    assert store.drop_field_index("confidence")
+    assert not store.drop_field_index("confidence")
+
+
+def test_a_predicate_without_an_index_still_answers_narrowed_by_the_others(store, kitchen):
+    store.drop_field_index("confidence")
+    plans: list = []
+    hits = QueryEngine(store, explain=plans).clusters(
+        where="shape:confidence>=0.9", region="table", limit=500).items
+    assert hits and all(h.region == "table" for h in hits)
+    assert all("COLLSCAN" not in plan["stages"] and plan["indexes"] == ["region_newest"]
+               for plan in plans)
+
+
+@pytest.mark.parametrize("field, message", [
+    ("colorhistogram:histogram", "not a scalar field"),
+    ("classification:nope", "has no field 'nope'"),
+    ("nonsense", "expected type:field"),
+    ("shape:$where", "must not be empty or start with $"),
+])
+def test_only_scalar_fields_of_known_kinds_can_be_indexed(field, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        annotation_field(field)

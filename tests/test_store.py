@@ -293,19 +293,23 @@ def test_counts_per_collection_and_type(store):
     {"scene_id": ObjectId()},
     {"search.terms": "cereal"},
     {"search.region": "counter_top_sink", "search.time": {"$gt": 0}},
-    {"search.fields": {"$elemMatch": {"k": "pm.annotation.Logo:brand", "v": "Ja!"}}},
+    {"annotations": {"$elemMatch": {"_type": "pm.annotation.Logo", "brand": "Ja!"}}},
     {"object_id": ObjectId()},
 ])
 def test_cluster_query_paths_use_an_index(store, query):
+    store.add_field_index("brand")  # what people ask about gets one
     plan = store.clusters.find(query).explain()["queryPlanner"]["winningPlan"]
     assert "IXSCAN" in str(plan), plan
 
 
 def test_prepare_drops_the_indexes_no_query_uses_any_more(store):
     store.clusters.create_index("search.labels", name="labels")  # as an older version did
+    store.clusters.create_index([("search.fields.k", 1), ("search.fields.v", 1)], name="fields")
+    store.add_field_index("brand")  # a user's: kept
     store.prepare()
     present = set(store.clusters.index_information())
-    assert "labels" not in present and {"fields", "terms_newest", "cells_newest_xyz"} <= present
+    assert not {"labels", "fields"} & present
+    assert {"field:brand", "terms_newest", "cells_newest_xyz"} <= present
 
 
 # --- the async store -------------------------------------------------------------------
@@ -384,7 +388,8 @@ def test_reindex_brings_data_of_an_older_version_up_to_date(store):
     ids = [c.id for c in scene.clusters]
     fresh_clusters = {d["_id"]: d["search"] for d in store.clusters.find({"_id": {"$in": ids}})}
     fresh_scene = store.scenes.find_one({"_id": scene.id})["summary"]
-    stale = {"$unset": {"search.x": "", "search.fields": "", "search.terms": ""}}
+    stale = {"$unset": {"search.x": "", "search.terms": ""},  # and an older version's key:
+             "$set": {"search.fields": [{"k": "pm.annotation.Shape:shape", "v": "box"}]}}
     store.clusters.update_many({"_id": {"$in": ids}}, stale)
     store.scenes.update_one({"_id": scene.id}, {"$unset": {"summary": ""}})
 

@@ -249,7 +249,6 @@ def _cluster_document(
     doc = out.encode(cluster, threshold)
     doc[ARRIVED_KEY] = len(cluster.annotations)
     doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot)
-    search["fields"] = search_keys.field_entries(doc.get("annotations", ()))
     out.terms.update(filter(search_keys.misspellable, search["terms"]))
     out.labels.update(label for label in search["labels"] if not search_keys.one_word(label))
     return doc

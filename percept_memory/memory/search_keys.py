@@ -7,9 +7,9 @@
   exactly by position; x, y and z are kept as scalars beside them (`search.x`...), so that the
   index of the cells holds the coordinates too and ranks the k nearest without reading a
   document;
-- fields: every scalar field of every annotation as a {k: "type:path", v: value} pair
-  (`search.fields`, the attribute pattern), so a predicate on any field of any type, known to
-  this version or not, has index bounds.
+Predicates on other annotation fields (classification:confidence>0.8) are looked up in the
+annotations themselves: narrowed by these keys, or by an index a user adds on that field
+(store.py: add_field_index).
 Pure functions; documents.py writes their results, queries/ computes the same keys to look up.
 """
 
@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from functools import lru_cache
-
-from bson.int64 import Int64
 
 from percept_memory.converters import escape_key
 
@@ -140,37 +138,10 @@ def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) 
 
 # --- fields -------------------------------------------------------------------------------
 
-SCALARS = frozenset({str, bool, int, float, Int64})  # exact types: encoded documents are plain
-_NOT_FIELDS = frozenset({"_id", "_type"})
-
 
 def field_key(type_name: str, path: str) -> str:
+    """How a field of a type is named to people and in index names: `type:path`."""
     return f"{type_name}:{path}"
-
-
-def field_entries(annotations: Iterable[Mapping]) -> list[dict]:
-    """{k, v} for every scalar field of every annotation document (any type, `_id` and
-    `_type` aside) and for the scalars of its mappings one level down (`confidences.cereal`,
-    `properties.perishable`); lists and typed values (arrays, images, poses) are left out.
-    Duplicates are dropped. (Runs for every stored cluster: written for speed, with exact
-    type tests; NaN is not a value to look up.)"""
-    entries: dict[tuple, None] = {}  # (k, type, v), in order, each once
-    for annotation in annotations:
-        name = annotation.get("_type")
-        if type(name) is not str:
-            continue
-        prefix = name + ":"
-        for key, value in annotation.items():
-            kind = type(value)
-            if kind in SCALARS:
-                if value == value and key not in _NOT_FIELDS:
-                    entries[prefix + key, kind, value] = None
-            elif kind is dict and "_type" not in value:
-                inner = f"{prefix}{key}."
-                for sub, item in value.items():
-                    if type(item) in SCALARS and item == item and sub not in _NOT_FIELDS:
-                        entries[inner + sub, type(item), item] = None
-    return [{"k": k, "v": v} for k, _, v in entries]
 
 
 def field_path(first: str, rest: Iterable[str]) -> str:

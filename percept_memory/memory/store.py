@@ -44,6 +44,7 @@ from .naming import renamed
 from .schema import (
     CLUSTERS,
     COUNTED_COLLECTIONS,
+    FIELD_INDEX_PREFIX,
     GRIDFS_CHUNKS,
     GRIDFS_FILES,
     INDEXES,
@@ -55,6 +56,7 @@ from .schema import (
     TERMS,
     TYPES,
     catalogue_entry,
+    field_index,
 )
 from .settings import Settings
 from .types import Annotation, Cluster, Scene
@@ -166,6 +168,31 @@ class MemoryStore(StoreBase):
         for name, retired in RETIRED_INDEXES.items():
             for index in set(retired) & set(self.db[name].index_information()):
                 self.db[name].drop_index(index)
+
+    def field_indexes(self) -> list[str]:
+        """The annotation fields (paths) indexed on a user's demand, by name."""
+        return sorted(name.removeprefix(FIELD_INDEX_PREFIX)
+                      for name in self.clusters.index_information()
+                      if name.startswith(FIELD_INDEX_PREFIX))
+
+    def add_field_index(self, path: str) -> bool:
+        """Index the annotations' field at `path` (of every type: `confidence` serves
+        classification:confidence and shape:confidence), so that a predicate on it needs
+        nothing else to be fast (queries narrowed by text, region, time... are, without it).
+        MongoDB builds it while reads and writes go on. False when it was there already."""
+        index = field_index(path)
+        if index.document["name"] in self.clusters.index_information():
+            return False
+        self.clusters.create_indexes([index])
+        return True
+
+    def drop_field_index(self, path: str) -> bool:
+        """Drop a field index added before; False when there was none."""
+        name = field_index(path).document["name"]
+        if name not in self.clusters.index_information():
+            return False
+        self.clusters.drop_index(name)
+        return True
 
     def close(self) -> None:
         self.client.close()

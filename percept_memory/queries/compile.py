@@ -60,18 +60,14 @@ def time_window(after: int | None, before: int | None, at: int | None = None) ->
 
 
 def predicate_clauses(f: ClusterFilter) -> list[dict]:
-    """Per annotation type, one $elemMatch over the annotations (all its predicates hold on
-    the same annotation), and per comparable predicate a lookup in the field-entry index."""
+    """Per annotation type, one $elemMatch over the annotations: all its predicates hold on
+    the same annotation, and an index on a field of the type (store.add_field_index) gets
+    bounds on both the type and the field."""
     by_type: dict[str, dict[str, dict]] = defaultdict(lambda: defaultdict(dict))
-    lookups = []
     for p in f.where:
         by_type[p.type][p.field][p.operator] = p.value
-        if p.operator != "$ne" and p.value is not None:  # null and missing are not keyed
-            lookups.append({"search.fields": {"$elemMatch": {"k": p.key,
-                                                             "v": {p.operator: p.value}}}})
-    exact = [{"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
-             for type_name, fields in by_type.items()]
-    return lookups + exact
+    return [{"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
+            for type_name, fields in by_type.items()]
 
 
 def conjunction(clauses: list[dict]) -> dict:

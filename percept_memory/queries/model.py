@@ -10,9 +10,11 @@ Compact text forms exist for the query string and the command line: a box is
 
 from __future__ import annotations
 
+import enum
 import json
 import math
 import re
+import types
 import typing
 from datetime import datetime
 from typing import Annotated, Any, Literal
@@ -203,7 +205,7 @@ class Predicate(Strict):
 
     @property
     def key(self) -> str:
-        """The `search.fields` key this predicate looks up."""
+        """The field as people name it (`type:path`), and its index (store.add_field_index)."""
         return field_key(self.type, self.field)
 
     @property
@@ -215,13 +217,49 @@ class _TextValue(str):
     """A predicate value written as text (query string, CLI): its type is still to decide."""
 
 
+def annotation_field(text: str) -> tuple[str, str]:
+    """The stored type and field path of a field as a predicate names it, `type:field`
+    ("classification:confidence", "product:properties.perishable"): ValueError if there is
+    no such scalar field."""
+    type_part, colon, field = (part.strip() for part in text.partition(":"))
+    if not colon or not type_part or not field:
+        raise ValueError(f"expected type:field, such as classification:confidence, got {text!r}")
+    parts = field.split(".")
+    if not all(_SEGMENT.match(part) for part in parts):
+        raise ValueError(f"field {field!r}: parts must not be empty or start with $")
+    name = canonical_type(type_part)
+    path, kind = _stored_field(name, parts)
+    if kind is not None and not _scalar(kind):
+        raise ValueError(f"{name}:{field} is not a scalar field (a number, text or truth)")
+    return name, path
+
+
+def _scalar(kind: Any) -> bool:
+    """Whether a field's values are numbers, texts or truths (what an index orders)."""
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin is typing.Annotated:
+        return _scalar(args[0])
+    if origin in (typing.Union, types.UnionType):
+        return all(_scalar(arm) for arm in args if arm is not type(None))
+    return origin is typing.Literal or (isinstance(kind, type) and issubclass(
+        kind, int | float | str | bool | enum.Enum))
+
+
 def _resolve_field(type_name: str, parts: list[str], value: Any) -> tuple[str, Scalar]:
     """The stored path of a field and the value converted to its type."""
+    path, kind = _stored_field(type_name, parts)
+    if kind is None:
+        return path, _json_scalar(value)
+    return path, _converted(value, kind, f"{type_name}:{parts[0]}")
+
+
+def _stored_field(type_name: str, parts: list[str]) -> tuple[str, Any]:
+    """The stored path of a field and its type (None: a type this program does not know)."""
     cls = class_for(type_name)
     if parts[0] in ("_type", "_id"):
         raise ValueError(f"{parts[0]} is not a field to compare: choose the type before ':'")
     if cls is None:
-        return field_path(parts[0], parts[1:]), _json_scalar(value)
+        return field_path(parts[0], parts[1:]), None
     fields = {key: (name, info) for name, info in cls.model_fields.items()
               for key in (name, info.alias) if key and name != "id"}
     if parts[0] not in fields:
@@ -237,7 +275,7 @@ def _resolve_field(type_name: str, parts: list[str], value: Any) -> tuple[str, S
                              f"{'.'.join(parts[1:])!r}")
         if len(parts) > 2:
             raise ValueError(f"field {'.'.join(parts)!r} is too deep: at most field.key")
-    return field_path(stored, parts[1:]), _converted(value, kind, f"{type_name}:{parts[0]}")
+    return field_path(stored, parts[1:]), kind
 
 
 def _mapping_value_type(kind: Any) -> Any:

@@ -28,7 +28,9 @@ class QueryError(StoreError):
 class QueryTimeout(QueryError):
     def __init__(self, limit_ms: int):
         super().__init__(f"the query took longer than the limit of {limit_ms} ms "
-                         "(PMEM_QUERY_TIMEOUT_MS): narrow it down (time, region, text, ...)")
+                         "(PMEM_QUERY_TIMEOUT_MS): narrow it down (time, region, text, ...), "
+                         "or give the field of a `where` predicate an index of its own "
+                         "(pmem index add TYPE:FIELD)")
 
 
 @dataclass(frozen=True)
@@ -132,7 +134,7 @@ class AsyncRunner:
 
 
 _STAGE = re.compile(r"'stage': '(\w+)'")
-_INDEX = re.compile(r"'indexName': '(\w+)'")
+_INDEX = re.compile(r"'indexName': '([^']+)'")
 
 
 def summary(op: Op, explained: dict) -> dict:

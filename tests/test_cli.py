@@ -179,7 +179,8 @@ def error_line(result) -> str:
 @pytest.mark.parametrize("options, words", [
     (["--after", "yesterday"], "after: expected nanoseconds since the epoch or an ISO 8601"),
     (["--box", "1,2"], "box: expected a box x0,y0,z0,x1,y1,z1"),
-    (["--limit", "0"], "limit: Input should be greater than or equal to 1"),
+    (["--limit", "0"], "limit=0 asks for no page: with count=true it asks for the count"),
+    (["--limit", "-1"], "limit: Input should be greater than or equal to 0"),
     (["--sphere", "0,0,0", "--limit", "x"], "sphere: "),
 ])
 def test_bad_query_options_are_one_line_naming_the_option(mongo_uri, db_name, options, words):

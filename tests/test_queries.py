@@ -444,3 +444,13 @@ def test_a_predicate_without_an_index_still_answers_narrowed_by_the_others(store
 def test_only_scalar_fields_of_known_kinds_can_be_indexed(field, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         annotation_field(field)
+
+
+def test_the_count_alone_reads_no_page(store, kitchen):
+    plans: list = []
+    alone = QueryEngine(store, explain=plans).clusters(region="table", limit=0, count=True)
+    paged = QueryEngine(store).clusters(region="table", count=True)
+    assert alone.items == [] and alone.next is None and alone.total == paged.total > 0
+    assert [plan["op"] for plan in plans] == ["Count"]
+    with pytest.raises(ValueError, match="limit=0 asks for no page"):
+        ClusterQuery(region=["table"], limit=0)

@@ -44,6 +44,8 @@ def find_clusters(query: ClusterQuery) -> Plan[ClusterPage]:
     match, expansions = yield from compiled(query)
     if query.near is not None:
         return ClusterPage(items=(yield from nearest(match, query.near, query.k)))
+    if query.limit == 0:  # the count alone: one round trip, no document read for a page
+        return ClusterPage(items=[], total=(yield Count(CLUSTERS, match)))
     if query.sort == "relevance":
         docs = yield Aggregate(CLUSTERS, [
             {"$match": match},

@@ -360,7 +360,8 @@ class ClusterQuery(ClusterFilter):
     sort: Sort | None = Field(
         default=None, description="newest (default), oldest, relevance (default with text), "
                                   "distance (with near, the only one)")
-    limit: Annotated[int, Field(ge=1, le=MAX_PAGE)] = 50
+    limit: Annotated[int, Field(ge=0, le=MAX_PAGE)] = Field(
+        default=50, description="page size; 0 with count: the count alone, no page read")
     cursor: Annotated[str, StringConstraints(max_length=400)] | None = Field(
         default=None, description="`next` of the previous page")
     count: bool = Field(default=False, description="also count every match")
@@ -374,6 +375,9 @@ class ClusterQuery(ClusterFilter):
             raise ValueError("sort=relevance needs text")
         if self.near is not None and self.cursor is not None:
             raise ValueError("the k nearest come in one page: no cursor")
+        if self.limit == 0 and not (self.count and self.near is None):
+            raise ValueError("limit=0 asks for no page: with count=true it asks for the count "
+                             "alone (not of the k nearest)")
         object.__setattr__(self, "sort", sort)
         return self
 

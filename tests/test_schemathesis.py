@@ -46,7 +46,7 @@ def test_the_description_types_parameters_declares_errors_and_takes_scenes(store
     description = TestClient(app, base_url=LOCAL).get("/openapi.json").json()
     parameters = {p["name"]: p["schema"]
                   for p in description["paths"]["/api/clusters"]["get"]["parameters"]}
-    assert parameters["limit"] == {"type": "integer", "minimum": 1, "maximum": 500, "default": 50}
+    assert parameters["limit"] == {"type": "integer", "minimum": 0, "maximum": 500, "default": 50}
     assert parameters["count"]["type"] == "boolean"
     assert parameters["sort"]["enum"] == ["newest", "oldest", "relevance", "distance"]
     assert parameters["region"]["type"] == "array"

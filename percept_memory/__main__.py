@@ -2,4 +2,5 @@
 
 from percept_memory.cli import main
 
-main()
+if __name__ == "__main__":  # not when a worker process (spawned) imports it again
+    main()

@@ -24,6 +24,7 @@ from pydantic import ValidationError
 
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
+from percept_memory.ingest.json_batches import PARALLEL_BYTES, JsonWorkers, scenes_of
 from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
@@ -77,6 +78,33 @@ class IngestService:
         self.batch_size = batch_size
         self.limits = {"max_image_pixels": settings.max_image_pixels,
                        "max_crop_pixels": settings.max_crop_pixels}  # for validation
+        self.json_workers = (JsonWorkers(settings.ingest_processes)
+                             if settings.ingest_processes > 1 else None)
+
+    def close(self) -> None:
+        """Stop the worker processes, if any were started."""
+        if self.json_workers is not None:
+            self.json_workers.close()
+
+    def ingest_json(self, body: bytes, wait: float | None = None) -> list[SceneIds]:
+        """Store the scenes of a JSON body (a scene or a list of them, as GET
+        /api/schema/scene describes; NotScenes when it holds none) as ingest_batch does. A
+        large body is parsed, validated and encoded by the worker processes, a part each
+        (json_batches.py); only what they cannot store as they made it (a scene stored
+        before, a write too large) goes the usual way."""
+        with self.pipeline.ingesting():
+            results = None
+            if self.json_workers is not None and len(body) >= PARALLEL_BYTES:
+                written, prepared = self.json_workers.prepared(body, self.limits,
+                                                               self.store.gridfs_threshold)
+                if self.store.put_documents(written):
+                    results = self._stored(prepared)
+            if results is None:
+                items, screened = scenes_of(body)
+                results = self.ingest_batch(items, screened=screened)
+        if wait is not None:
+            self.settled(results, wait)
+        return results
 
     def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
                wait: float | None = None) -> SceneIds:

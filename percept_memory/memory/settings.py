@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Literal
 
@@ -139,6 +140,12 @@ class Settings(BaseSettings):
         default=True,
         description="PMEM_CONSOLIDATOR: the web app runs the memory pipeline itself (false when "
                     "`pmem consolidate` processes run apart)",
+    )
+    ingest_processes: int = Field(
+        default_factory=lambda: min(os.cpu_count() or 1, 4), ge=1,
+        description="PMEM_INGEST_PROCESSES: processes that parse, validate and encode large "
+                    "JSON bodies of scenes for the web app (1: the app's own; default: the "
+                    "cores, at most 4; ~100 MB each)",
     )
     map_lease_s: float = Field(
         default=30.0, gt=0,

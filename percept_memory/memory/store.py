@@ -267,6 +267,20 @@ class MemoryStore(StoreBase):
         self._catalogue(whole.documents)
         return whole.results
 
+    def put_documents(self, written: docs.Documents) -> bool:
+        """Store the documents of new scenes prepared elsewhere (ingest's worker processes)
+        in one transaction: True. False, and nothing written, when the server refuses them as
+        they are (a scene stored before, a write too large): put_scenes sorts those out."""
+        try:
+            self._transaction(lambda session: self._insert(written, session),
+                              retry_unreachable=False)
+        except (DocumentTooLarge, OperationFailure) as error:
+            if too_large(error) or transaction_too_large(error) or duplicate_key(error):
+                return False
+            raise
+        self._catalogue(written)
+        return True
+
     def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:
         """The second half of put_scenes: write the new scenes in one transaction. When some
         were stored already (before, or by another writer meanwhile), their stored ids are

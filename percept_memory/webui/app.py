@@ -19,7 +19,7 @@ from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
 
 from percept_memory.ingest.jobs import State, job_report
-from percept_memory.ingest.json_input import parse
+from percept_memory.ingest.json_batches import NotScenes
 from percept_memory.ingest.service import IngestError, IngestService, memory_pipeline
 from percept_memory.memory.errors import StoreError
 from percept_memory.memory.pipeline import status as pipeline_status
@@ -57,6 +57,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             yield
         finally:
             pipeline.stop()
+            service.close()
 
     app = FastAPI(
         lifespan=lifespan,
@@ -119,12 +120,11 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         (same robot and timestamp) keep their ids and come back with `created: false`."""
         _authorise(request, settings.token)
         with service.pipeline.ingesting():  # the server's consolidator waits: the whole request
-            data, screened = _parse_json(await _read_body(request, max_bytes))
-            items = data if isinstance(data, list) else [data]
-            if not items:
-                raise ApiError(422, "the batch is empty")
+            body = await _read_body(request, max_bytes)
             try:
-                results = await run_in_threadpool(service.ingest_batch, items, screened=screened)
+                results = await run_in_threadpool(service.ingest_json, body)
+            except NotScenes as error:
+                raise ApiError(422, str(error)) from None
             except IngestError as error:
                 raise ApiError(422, "the scenes are not valid", error.problems) from None
         answer: dict[str, Any] = {}
@@ -216,8 +216,4 @@ async def _read_body(request: Request, max_bytes: int) -> bytes:
     return b"".join(chunks)
 
 
-def _parse_json(body: bytes) -> tuple[Any, bool]:
-    try:
-        return parse(body)
-    except ValueError as error:
-        raise ApiError(422, f"the body is not valid JSON: {error}") from None
+

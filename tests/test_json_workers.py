@@ -1,0 +1,110 @@
+"""Large JSON bodies prepared by worker processes (ingest/json_batches.py): stored exactly as
+the in-process path stores them, all or nothing, problems named by their place in the body."""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+
+import bson
+import numpy as np
+import pytest
+from bson import ObjectId
+from fastapi.testclient import TestClient
+
+from percept_memory.ingest import synthetic
+from percept_memory.ingest.json_batches import PARALLEL_BYTES
+from percept_memory.ingest.service import IngestService
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import MemoryStore
+from percept_memory.webui.app import create_app
+
+from .conftest import LOCAL
+from .test_store import snapshot
+
+STAMP = 1_750_000_000_000_000_000
+
+
+def body_of(kitchen_rgb, first: int, count: int = 24) -> list[dict]:
+    rng = np.random.default_rng(first)
+    return [json.loads(synthetic.scene(rng, STAMP + (first + i) * 10**9, 6, kitchen_rgb)
+                       .model_dump_json(by_alias=True)) for i in range(count)]
+
+
+def encoded(scenes: list[dict]) -> bytes:
+    body = json.dumps(scenes).encode()
+    assert len(body) >= PARALLEL_BYTES  # large enough for the workers
+    return body
+
+
+@pytest.fixture(scope="module")
+def client(store):
+    settings = Settings(ingest_processes=2, consolidator=False, max_request_mb=64)
+    with TestClient(create_app(store, settings), base_url=LOCAL) as client:
+        yield client
+
+
+def post(client, body: bytes):
+    return client.post("/api/scenes", content=body, headers={"content-type": "application/json"})
+
+
+def without_ids(value):
+    """A document with every id blanked (ids are made afresh by each store)."""
+    if isinstance(value, dict):
+        return {k: without_ids(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [without_ids(v) for v in value]
+    return None if isinstance(value, ObjectId) else value
+
+
+def test_the_workers_store_what_the_in_process_path_stores(client, store, kitchen_rgb):
+    body = encoded(body_of(kitchen_rgb, 0))
+    answer = post(client, body)
+    assert answer.status_code == 201, answer.text
+    ids = [ObjectId(s["scene_id"]) for s in answer.json()["scenes"]]
+    assert len(ids) == 24 and all(s["created"] for s in answer.json()["scenes"])
+    assert len(multiprocessing.active_children()) == 2  # the workers prepared them
+    other = MemoryStore(store.client, store.db.name + "_inproc",
+                        gridfs_threshold=store.gridfs_threshold)
+    try:
+        other.prepare()
+        IngestService(other, settings=Settings(ingest_processes=1)).ingest_json(body)
+        ours = {"scenes": {"_id": {"$in": ids}}, "clusters": {"scene_id": {"$in": ids}},
+                "outbox": {"_id": {"$in": ids}}}
+        for name, selected in ours.items():  # (ids made in two processes: not in time order)
+            made = sorted(bson.encode(without_ids(d)) for d in store.db[name].find(selected))
+            assert made == sorted(bson.encode(without_ids(d)) for d in other.db[name].find())
+            assert len(made) == (24 * 6 if name == "clusters" else 24), name
+    finally:
+        store.client.drop_database(other.db.name)
+
+
+def test_posting_it_again_stores_nothing_twice(client, store, kitchen_rgb):
+    body = encoded(body_of(kitchen_rgb, 100))
+    first = post(client, body).json()["scenes"]
+    before = snapshot(store)
+    again = post(client, body)
+    assert again.status_code == 201
+    assert [s["scene_id"] for s in again.json()["scenes"]] == [s["scene_id"] for s in first]
+    assert not any(s["created"] for s in again.json()["scenes"])
+    assert snapshot(store) == before
+
+
+def test_problems_in_any_part_are_named_by_their_place_and_nothing_is_stored(
+        client, store, kitchen_rgb):
+    scenes = body_of(kitchen_rgb, 200)
+    scenes[2]["timestamp"] = -1  # in the first worker's part
+    scenes[21]["clusters"][0]["annotations"][1]["confidence"] = "high"  # in the second's
+    before = snapshot(store)
+    answer = post(client, encoded(scenes))
+    assert answer.status_code == 422
+    problems = answer.json()["error"]["problems"]
+    assert {(p["item"], p["path"]) for p in problems} == {
+        (2, "timestamp"), (21, "clusters.0.annotations.1.confidence")}
+    assert snapshot(store) == before
+
+
+def test_a_large_body_that_is_not_json_is_a_422(client):
+    answer = post(client, b"[" + b"1," * PARALLEL_BYTES)
+    assert answer.status_code == 422
+    assert "not valid JSON" in answer.json()["error"]["message"]

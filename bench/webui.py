@@ -11,8 +11,9 @@ The map page over the kitchen week (--map-days days, consolidated), at its end a
 Then the search page over a large memory: --search-clusters clusters (default 1,000,000)
 built as bench/queries.py builds them (a building of 50 kitchens, a year of observations),
 searched by text, region and time, a sphere, an annotation field predicate, as a grid and as
-a list, and its second page. --keep DB builds into DB once and reuses it (bench/queries.py
---keep DB builds the same).
+a list, and its second page; and the map page of its one map of 5,000 objects, whole and
+zoomed, now and midway through its year, with each page's size. --keep DB builds into DB once
+and reuses it (bench/queries.py --keep DB builds the same).
 
 Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 points), and the
 playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with

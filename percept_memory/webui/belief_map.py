@@ -134,7 +134,11 @@ class MapBox:
         cx, cy = min(xs) / 2 + max(xs) / 2, min(ys) / 2 + max(ys) / 2
         half_x = max(_half(max(xs), min(xs)) * (1 + margin), MIN_SPAN_M / 2)
         half_y = max(_half(max(ys), min(ys)) * (1 + margin), MIN_SPAN_M / 2)
-        return cls(cx - half_x, cy - half_y, cx + half_x, cy + half_y)
+        digits = 2 - math.floor(math.log10(min(half_x, half_y)))  # of a short URL, outward
+        return cls(_rounded(cx - half_x, digits, math.floor), _rounded(cy - half_y, digits,
+                                                                       math.floor),
+                   _rounded(cx + half_x, digits, math.ceil), _rounded(cy + half_y, digits,
+                                                                      math.ceil))
 
     def holds(self, position: list | None) -> bool:
         return (position is not None and self.x0 <= position[0] <= self.x1
@@ -146,6 +150,13 @@ class MapBox:
 
     def __str__(self) -> str:
         return ",".join(repr(v) for v in (self.x0, self.y0, self.x1, self.y1))
+
+
+def _rounded(value: float, digits: int, direction) -> float:
+    """value rounded to `digits` decimals (down: math.floor, up: math.ceil), if finite so."""
+    step = 10.0 ** -digits
+    rounded = round(direction(value / step) * step, max(digits, 0))
+    return rounded if math.isfinite(rounded) else value
 
 
 @dataclass
@@ -228,6 +239,7 @@ class DrawnBelief:
     unplaced: list[ObjectAt]
     markers: list[Marker]
     box: MapBox | None
+    now: bool  # drawn at the map's newest moment: its links follow the time, not keep it
 
     @property
     def wider(self) -> MapBox | None:
@@ -288,7 +300,7 @@ def drawn_belief(store: MemoryStore, engine: QueryEngine, map_name: str, t: int,
     region_labels, crowds = lay_out(view, regions, objects, markers)
     return DrawnBelief(map_name, view, regions, region_labels, objects, crowds,
                        [object_at(b["event"], names) for b in listed[len(single):]
-                        if "event" in b], markers, box)
+                        if "event" in b], markers, box, now)
 
 
 def believed_now(map_name: str, box: MapBox | None) -> Plan[list[dict]]:

@@ -25,7 +25,7 @@ from percept_memory.webui import belief_map
 
 from . import test_webui
 from .conftest import ingest_consolidated
-from .test_webui import TEXT_BOXES, overlapping, shot
+from .test_webui import NO_ALT, TABBABLE, TEXT_BOXES, UNLABELLED, overlapping, shot
 
 browser, page, url, client = test_webui.browser, test_webui.page, test_webui.url, test_webui.client
 
@@ -104,6 +104,22 @@ def test_a_dense_map_draws_a_bounded_number_of_items_counting_every_object(page,
     assert labelled + crowded == single and labelled > 0
     assert page.locator("table.believed tbody tr").count() == single + markers
     shot(page, "17-map-dense")
+
+
+def test_markers_are_named_links_in_the_tab_order(page, url, dense):
+    page.goto(f"{url}/map?map={MAP}")
+    assert page.evaluate(NO_ALT) == [] and page.evaluate(UNLABELLED) == []
+    page.evaluate(TABBABLE)  # numbers what Tab visits
+    markers = page.locator("a.marker")
+    for i in range(markers.count()):
+        marker = markers.nth(i)
+        assert marker.get_attribute("data-audit") is not None
+        count = marker.get_attribute("data-count")
+        expect(marker).to_have_accessible_name(
+            re.compile(rf"^{count} objects, \d+ seen there, \d+ hidden: zoom in$"))
+    markers.first.focus()
+    page.keyboard.press("Enter")
+    expect(page).to_have_url(re.compile(r"box="))
 
 
 def test_a_sparse_map_draws_each_object(client):

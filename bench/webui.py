@@ -11,8 +11,9 @@ The map page over the kitchen week (--map-days days, consolidated), at its end a
 Then the search page over a large memory: --search-clusters clusters (default 1,000,000)
 built as bench/queries.py builds them (a building of 50 kitchens, a year of observations),
 searched by text, region and time, a sphere, an annotation field predicate, as a grid and as
-a list, and its second page. --keep DB builds into DB once and reuses it (bench/queries.py
---keep DB builds the same).
+a list, and its second page; and the map page of its one map of 5,000 objects, whole and
+zoomed, now and midway through its year, with each page's size. --keep DB builds into DB once
+and reuses it (bench/queries.py --keep DB builds the same).
 
 Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 points), and the
 playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with
@@ -105,11 +106,33 @@ def search_pages(args: argparse.Namespace, big: Scene) -> dict:
                          "scene_page_3d": timed(client, f"/scenes/{big.id}?view=3d",
                                                 args.repeat),
                          "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}",
-                                               args.repeat),
-                         "map_page": timed(client, f"/map?map={MAP}", args.repeat)}
+                                               args.repeat)}
         return {"clusters": store.clusters.estimated_document_count(),
                 "build_s": None if reuse else round(built, 1), "pages": pages,
-                "scene_pages_in_this_memory": in_memory}
+                "scene_pages_in_this_memory": in_memory,
+                "map_pages": map_pages_of(store, client, args.repeat)}
+
+
+def map_pages_of(store, client: TestClient, repeat: int) -> dict:
+    """The map page of the large memory's one map (its 50 kitchens' objects): whole and
+    zoomed into one kitchen (a 10 m square) and one counter of it, now and midway through
+    the year; each with the page's size and how many objects, markers and table rows it
+    draws."""
+    first, last = (store.scenes.find_one({"map": MAP}, sort=[("timestamp", order)])["timestamp"]
+                   for order in (1, -1))
+    midway = {"at": (first + last) // 2 // 10**9}
+    views = {"whole": {}, "kitchen": {"box": "0,0,10,10"}, "counter": {"box": "0,0,2,2"}}
+    out = {}
+    for name, view in views.items():
+        for when, moment in (("now", {}), ("midway", midway)):
+            path = "/map?" + urlencode({"map": MAP, **view, **moment})
+            body = client.get(path).text
+            out[f"{name}_{when}"] = {
+                **timed(client, path, repeat), "kb": round(len(body.encode()) / 1024, 1),
+                "objects_drawn": body.count('class="object '),
+                "markers": len(re.findall(r'class="marker[^"]*" data-count', body)),
+                "table_rows": body.count("<tr") - 1}
+    return out
 
 
 def map_page(args: argparse.Namespace) -> dict:

@@ -170,11 +170,12 @@ def _belief(o: dict, match: float, confidence: float | None = None,
 # --- what is at a place, what changed there --------------------------------------------------
 
 
-def latest_events(objects: dict, t: int, place: Place | None = None) -> Plan[list[dict]]:
+def latest_events(objects: dict, t: int, place: Place | None = None,
+                  fields: dict | None = None) -> Plan[list[dict]]:
     """The belief about each object at time t (its last event at or before t), of the
     objects whose ids meet the condition; with a place, only the objects believed there then
-    (present or hidden). One index seek per object (DISTINCT_SCAN on events' object_time
-    index)."""
+    (present or hidden); with fields, only those of each event (a projection). One index seek
+    per object (DISTINCT_SCAN on events' object_time index)."""
     pipeline: list[dict] = [
         {"$match": {"object_id": objects, "time": {"$lte": t}}},
         {"$sort": {"object_id": 1, "time": -1}},
@@ -183,6 +184,8 @@ def latest_events(objects: dict, t: int, place: Place | None = None) -> Plan[lis
     ]
     if place is not None:
         pipeline.append({"$match": {**_at(place), "explanation": {"$ne": "disappear"}}})
+    if fields is not None:
+        pipeline.append({"$project": fields})
     return (yield Aggregate(EVENTS, pipeline))
 
 
@@ -239,8 +242,8 @@ def changes(q: Between) -> Plan[Changes]:
 
     def pair(o) -> Moved:
         was, now = before[o], after.get(o, went.get(o))
-        return Moved(object_id=o, name=names.get(o), before=_object_at(was, names),
-                     after=_object_at(now, names) if now else None)
+        return Moved(object_id=o, name=names.get(o), before=object_at(was, names),
+                     after=object_at(now, names) if now else None)
 
     return Changes(t1=q.t1, t2=t2, appeared=appeared, disappeared=[pair(o) for o in gone],
                    moved=[pair(o) for o in stayed if o in moved])
@@ -252,11 +255,11 @@ def names_of(ids: list) -> Plan[dict]:
 
 
 def _objects_at(events: list[dict], names: dict) -> list[ObjectAt]:
-    return sorted((_object_at(e, names) for e in events),
+    return sorted((object_at(e, names) for e in events),
                   key=lambda o: (o.region or "", o.name or "", str(o.object_id)))
 
 
-def _object_at(e: dict, names: dict) -> ObjectAt:
+def object_at(e: dict, names: dict) -> ObjectAt:
     return ObjectAt(object_id=e["object_id"], map=e.get("map"), name=names.get(e["object_id"]),
                     state=STATE_OF[e["explanation"]], region=e.get("region"),
                     position=e.get("position"), since=e["time"], explanation=e["explanation"],

@@ -9,6 +9,14 @@ slider's value, since a browser sends a range input's large values in exponent f
 GET form with the slider picks the moment; links step to the scene before and after it, and
 to the round times of a time axis under the slider (time_axis.py).
 
+At any density: beyond ONE_BY_ONE objects in view, the drawing is cut into cells and a cell
+of more than SPARSE objects draws them as one disc with their count (grid clustering, as
+supercluster or FiftyOne's map do), a link to the same page zoomed into their box
+(`box=x0,y0,x1,y1`, metres), so a page draws a bounded number of items however many objects
+the map holds. Now (the default moment) the belief is read from `objects`, a box by its
+map_place index alone; at a past moment it is each object's last event by then, one index
+seek per object of the map (an object believed in the box then may be elsewhere now).
+
 The page shows one map at a time (`map`, default: the map of the newest scene), chosen from a
 list: regions, objects and the belief are per map. The store keeps no outlines of regions, so
 a region is drawn as the box around the positions of the map's objects last seen in it.
@@ -20,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
@@ -30,18 +39,20 @@ from pymongo import ASCENDING, DESCENDING
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
-from percept_memory.queries.model import Time
-from percept_memory.queries.ops import QueryError
+from percept_memory.queries.model import Place, Time
+from percept_memory.queries.ops import Find, Plan, QueryError
+from percept_memory.queries.questions import latest_events, names_of, object_at
 from percept_memory.queries.results import ObjectAt
 
 from . import scene3d, time_axis
 from .html import CSP, SCRIPT_CSP, PageError, bounded_int, page
-from .layout import RINGS, Box, Label, Layout
+from .layout import CHAR_WIDTH, RINGS, Box, Label, Layout
 
 SECOND = 1_000_000_000
 MAX_REGIONS = 500
 WIDTH, MAX_HEIGHT, MARGIN, PAD_M = 960, 720, 24, 0.15
 FONT, RADIUS = 11, 6  # px: the labels' size (style.css: .map text) and the objects' dots'
+MARKER_FONT = 10  # px: the size of a marker's count (style.css: .map .marker text)
 CROWD = 40  # px: objects without a label this near the crowd's first are counted with it
 # labels tried at most, in order (present, then the latest seen): more names than this are
 # unreadable anyway, and each that finds no room costs dozens of overlap tests (a map of
@@ -49,7 +60,16 @@ CROWD = 40  # px: objects without a label this near the crowd's first are counte
 LABELS_TRIED = 300
 FAINTEST = 0.25  # the opacity of a hidden object last seen at the map's first scene
 AGE_UNIT = 60 * SECOND  # ages count on a logarithmic scale from about this
+# the drawing's cells (px): one holding more than SPARSE objects draws them as one counted
+# marker, so a page draws at most SPARSE * 17 * 13 objects and markers, however many there are
+CELL, SPARSE = 60, 3
+ONE_BY_ONE = 200  # objects in view drawn one by one whatever their density (labels or crowds)
+MIN_SPAN_M = 0.05  # the narrowest view a marker leads to: objects nearer are one spot
+# what an event tells of the belief it made (queries.results.ObjectAt)
+OBJECT_AT_FIELDS = {key: 1 for key in ("object_id", "map", "explanation", "region", "position",
+                                       "time", "cluster_id")}
 time_of_text = TypeAdapter(Time)
+T = TypeVar("T")
 
 
 @dataclass
@@ -64,9 +84,9 @@ class Projection:
 
     @classmethod
     def around(cls, xs: list[float], ys: list[float], width: int = WIDTH,
-               max_height: int = MAX_HEIGHT) -> Projection:
-        x0, x1 = min(xs, default=0) - PAD_M, max(xs, default=1) + PAD_M
-        y0, y1 = min(ys, default=0) - PAD_M, max(ys, default=1) + PAD_M
+               max_height: int = MAX_HEIGHT, pad: float = PAD_M) -> Projection:
+        x0, x1 = min(xs, default=0) - pad, max(xs, default=1) + pad
+        y0, y1 = min(ys, default=0) - pad, max(ys, default=1) + pad
         scale = min((width - 2 * MARGIN) / _half(x1, x0),
                     (max_height - 2 * MARGIN) / _half(y1, y0)) / 2
         return cls(x0, y1, scale, round(_half(x1, x0) * scale * 2 + 2 * MARGIN),
@@ -81,6 +101,62 @@ def _half(a: float, b: float) -> float:
     """(a - b) / 2, exactly, but finite for any finite a and b: positions may lie as far apart
     as floats go, and 1e308 - -1e308 overflows."""
     return a / 2 - b / 2
+
+
+@dataclass(frozen=True)
+class MapBox:
+    """The part of a map a zoomed page shows (`box=x0,y0,x1,y1`, metres, edges included)."""
+
+    x0: float
+    y0: float
+    x1: float
+    y1: float
+
+    @classmethod
+    def parse(cls, text: str) -> MapBox:
+        parts = text.split(",")
+        try:
+            x0, y0, x1, y1 = (float(p) for p in parts)
+        except ValueError:
+            raise PageError(422, f"box: {text!r} is not x0,y0,x1,y1 (four numbers, "
+                                 "metres)") from None
+        if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+            raise PageError(422, f"box: {text!r} has a coordinate that is not finite")
+        if not (x0 < x1 and y0 < y1):
+            raise PageError(422, f"box: {text!r} is empty: x0 < x1 and y0 < y1, please")
+        return cls(x0, y0, x1, y1)
+
+    @classmethod
+    def around(cls, positions: list, margin: float) -> MapBox:
+        """The box around these positions, widened by a share of its size, and to at least
+        MIN_SPAN_M on each side: a marker's box leads to a view where its objects part."""
+        xs, ys = [p[0] for p in positions], [p[1] for p in positions]
+        cx, cy = min(xs) / 2 + max(xs) / 2, min(ys) / 2 + max(ys) / 2
+        half_x = max(_half(max(xs), min(xs)) * (1 + margin), MIN_SPAN_M / 2)
+        half_y = max(_half(max(ys), min(ys)) * (1 + margin), MIN_SPAN_M / 2)
+        digits = 2 - math.floor(math.log10(min(half_x, half_y)))  # of a short URL, outward
+        return cls(_rounded(cx - half_x, digits, math.floor), _rounded(cy - half_y, digits,
+                                                                       math.floor),
+                   _rounded(cx + half_x, digits, math.ceil), _rounded(cy + half_y, digits,
+                                                                      math.ceil))
+
+    def holds(self, position: list | None) -> bool:
+        return (position is not None and self.x0 <= position[0] <= self.x1
+                and self.y0 <= position[1] <= self.y1)
+
+    def condition(self) -> dict:
+        """The objects whose place (x, y: the map_place index) lies in the box."""
+        return {"x": {"$gte": self.x0, "$lte": self.x1}, "y": {"$gte": self.y0, "$lte": self.y1}}
+
+    def __str__(self) -> str:
+        return ",".join(repr(v) for v in (self.x0, self.y0, self.x1, self.y1))
+
+
+def _rounded(value: float, digits: int, direction) -> float:
+    """value rounded to `digits` decimals (down: math.floor, up: math.ceil), if finite so."""
+    step = 10.0 ** -digits
+    rounded = round(direction(value / step) * step, max(digits, 0))
+    return rounded if math.isfinite(rounded) else value
 
 
 @dataclass
@@ -114,36 +190,164 @@ class Crowd:
 
 
 @dataclass
-class DrawnBelief:
-    """The objects believed in a map at a moment, drawn on its floor plan with labels that
-    never overlap (macros.html: belief_figure); those without a position listed apart."""
+class Marker:
+    """The objects of one dense cell of the drawing, drawn as one disc with their count, as
+    large as the count's logarithm, leading to the view of their box."""
 
+    x: float
+    y: float
+    count: int
+    present: int
+    box: MapBox
+
+    @classmethod
+    def of(cls, members: list[tuple[float, float, dict]]) -> Marker:
+        """The marker of one cell's objects at their centre, kept inside the cell so that
+        markers never overlap (their radius stays under CELL / 2)."""
+        marker = cls(0, 0, len(members), sum(not b["hidden"] for *_, b in members),
+                     MapBox.around([b["position"] for *_, b in members], 0.1))
+        marker.x, marker.y = (_in_cell([m[axis] for m in members], marker.radius)
+                              for axis in (0, 1))
+        return marker
+
+    @property
+    def radius(self) -> float:
+        return round(RADIUS + 3 * math.log10(self.count), 1)
+
+    @property
+    def text_width(self) -> float:
+        """The count's width, squeezed into the disc."""
+        return round(min(len(str(self.count)) * MARKER_FONT * CHAR_WIDTH, 2 * self.radius - 4), 1)
+
+    def blocked(self) -> Box:
+        r = self.radius
+        return Box(self.x - r, self.y - r, 2 * r, 2 * r)
+
+
+@dataclass
+class DrawnBelief:
+    """The objects believed in a map (or in a box of it) at a moment, drawn on its floor plan:
+    those of sparse cells one by one with labels that never overlap, the dense cells' as
+    counted markers (macros.html: belief_figure); those without a position listed apart."""
+
+    map: str
     view: Projection
     regions: list[DrawnRegion]
     region_labels: dict[str, Label]
     objects: list[DrawnObject]
     crowds: list[Crowd]
     unplaced: list[ObjectAt]
+    markers: list[Marker]
+    box: MapBox | None
+    now: bool  # drawn at the map's newest moment: its links follow the time, not keep it
+
+    @property
+    def wider(self) -> MapBox | None:
+        """The box twice as wide and high around the same centre (None: the whole map)."""
+        if self.box is None:
+            return None
+        b = self.box
+        half_x, half_y = _half(b.x1, b.x0), _half(b.y1, b.y0)
+        return MapBox(b.x0 - half_x, b.y0 - half_y, b.x1 + half_x, b.y1 + half_y)
 
     @property
     def believed(self) -> list[ObjectAt]:
+        """The objects drawn one by one, and those without a position."""
         return [o.belief for o in self.objects] + self.unplaced
 
+    @property
+    def counted(self) -> int:
+        """How many objects the drawing holds, in markers or not."""
+        return len(self.objects) + sum(m.count for m in self.markers)
 
-def drawn_belief(store: MemoryStore, engine: QueryEngine, map_name: str, t: int,
-                 start: int) -> DrawnBelief:
-    """What the map page and the playback draw: QueryEngine.what_is_at on the floor plan,
-    labelled (lay_out), hidden objects fading with their age since start, the map's first
-    scene."""
-    believed = engine.what_is_at(map=map_name, t=t).objects
-    placed = [o for o in believed if o.position is not None]
-    view, regions = floor_plan(store, map_name, [o.position for o in placed])
-    seen = _last_seen(store, [o.object_id for o in placed if o.state == "hidden"], t)
-    objects = [DrawnObject(o, *view.point(o.position[0], o.position[1]),
-                           _opacity(seen.get(o.object_id), start, t)) for o in placed]
-    region_labels, crowds = lay_out(view, regions, objects)
-    return DrawnBelief(view, regions, region_labels, objects, crowds,
-                       [o for o in believed if o.position is None])
+
+def drawn_belief(store: MemoryStore, engine: QueryEngine, map_name: str, t: int, start: int,
+                 box: MapBox | None = None, now: bool = False) -> DrawnBelief:
+    """What the map page and the playback draw: the belief at t of the map's objects in the
+    box (default: the whole map) on the floor plan; beyond ONE_BY_ONE of them, the objects of
+    each cell of the drawing with more than SPARSE as one counted marker; the others labelled
+    (lay_out), hidden ones fading with their age since start, the map's first scene. `now`:
+    t is at or after the map's newest scene, so the belief is `objects` as it stands
+    (believed_now)."""
+    if now:
+        believed = engine.runner.run(believed_now(map_name, box))
+    else:
+        believed = [{"object_id": e["object_id"], "position": e.get("position"),
+                     "hidden": e["explanation"] == "hidden", "event": e}
+                    for e in engine.runner.run(latest_in_map(map_name, t))
+                    if box is None or box.holds(e.get("position"))]
+    placed = [b for b in believed if b["position"] is not None]
+    if box is None:
+        view, regions = floor_plan(store, map_name, [b["position"] for b in placed])
+    else:
+        view = Projection.around([box.x0, box.x1], [box.y0, box.y1], pad=0)
+        regions = [r for r in (_clipped(r, view) for r in floor_plan(
+            store, map_name, [], view=view)[1]) if r is not None]
+    points = [(*view.point(*b["position"][:2]), b) for b in placed]
+    single, dense = (points, []) if len(points) <= ONE_BY_ONE else gather(points, CELL, SPARSE)
+    listed = [b for _, _, b in single] + [b for b in believed if b["position"] is None]
+    if now:  # what made each listed object so: its last event
+        by_id = {b["object_id"]: b for b in listed}
+        for e in engine.runner.run(latest_events({"$in": list(by_id)}, t,
+                                                 fields=OBJECT_AT_FIELDS)):
+            by_id[e["object_id"]]["event"] = e
+    names = engine.runner.run(names_of([b["object_id"] for b in listed]))
+    seen = _last_seen(store, [b["object_id"] for b in listed if b["hidden"]], t)
+    objects = [DrawnObject(object_at(b["event"], names), x, y,
+                           _opacity(seen.get(b["object_id"]), start, t))
+               for x, y, b in single if "event" in b]
+    markers = [Marker.of(members) for members in dense]
+    region_labels, crowds = lay_out(view, regions, objects, markers)
+    return DrawnBelief(map_name, view, regions, region_labels, objects, crowds,
+                       [object_at(b["event"], names) for b in listed[len(single):]
+                        if "event" in b], markers, box, now)
+
+
+def believed_now(map_name: str, box: MapBox | None) -> Plan[list[dict]]:
+    """The belief now, as `objects` keeps it: each object of the map not gone, at its place
+    (the mean of its observations there), by the map_place index (a box: its range alone)."""
+    found = yield Find(OBJECTS, {"map": map_name, **(box.condition() if box else {}),
+                                 "state": {"$in": ["present", "hidden"]}},
+                       {"position": 1, "state": 1})
+    return [{"object_id": o["_id"], "position": o.get("position"),
+             "hidden": o["state"] == "hidden"} for o in found]
+
+
+def latest_in_map(map_name: str, t: int) -> Plan[list[dict]]:
+    """The belief at t about each of the map's objects (its last event by then, one index
+    seek per object) but those gone by then."""
+    found = yield Find(OBJECTS, {"map": map_name}, {"_id": 1})
+    return (yield from latest_events({"$in": [o["_id"] for o in found]}, t,
+                                     Place(map=map_name), OBJECT_AT_FIELDS))
+
+
+def gather(points: list[tuple[float, float, T]], cell: float,
+           sparse: int) -> tuple[list[tuple[float, float, T]], list[list[tuple[float, float, T]]]]:
+    """Points (x, y in pixels, item) by square cells of the drawing, as map tools cluster
+    theirs (supercluster, FiftyOne's map): those of cells holding at most `sparse` points, and
+    the points of each fuller cell together. A w x h drawing thus holds at most
+    sparse * (w / cell + 1) * (h / cell + 1) items, however many points there are."""
+    cells: dict[tuple[int, int], list] = {}
+    for point in points:
+        cells.setdefault((int(point[0] // cell), int(point[1] // cell)), []).append(point)
+    return ([p for members in cells.values() if len(members) <= sparse for p in members],
+            [members for members in cells.values() if len(members) > sparse])
+
+
+def _in_cell(values: list[float], radius: float) -> float:
+    """The mean of a cell's coordinates, moved in so that a disc of this radius there stays
+    inside the cell."""
+    low = values[0] // CELL * CELL + radius
+    return round(min(max(sum(values) / len(values), low), low + CELL - 2 * radius), 1)
+
+
+def _clipped(r: DrawnRegion, view: Projection) -> DrawnRegion | None:
+    """The part of a region inside a zoomed view, or None: the SVG shows what lies beyond."""
+    left, top = max(r.x, 0), max(r.y, 0)
+    right, bottom = min(r.x + r.width, view.width), min(r.y + r.height, view.height)
+    if right <= left or bottom <= top:
+        return None
+    return DrawnRegion(r.name, left, top, round(right - left, 1), round(bottom - top, 1))
 
 
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
@@ -151,8 +355,9 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
 
     @router.get("/map")
     async def map_page(request: Request, map: str = "", t: str = "", at: str = "",
-                       view: str = "") -> HTMLResponse:
+                       box: str = "", view: str = "") -> HTMLResponse:
         in_3d = scene3d.wanted(view)
+        zoomed = MapBox.parse(box) if box else None
         maps = await run_in_threadpool(map_names, store)
         if not maps:
             return page(request, "map.html", {"span": None})
@@ -163,18 +368,21 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         moment = moment_of(t, at) or span[1]
 
         def load():
-            belief = drawn_belief(store, engine, chosen, moment, span[0])
-            solid = scene3d.map_view(region_boxes(store, chosen),
-                                     belief.believed) if in_3d else None
+            belief = drawn_belief(store, engine, chosen, moment, span[0], zoomed,
+                                  now=moment >= span[1])
+            solid = scene3d.map_view(region_boxes(store, chosen), engine.what_is_at(
+                map=chosen, t=moment).objects) if in_3d else None
             return belief, _neighbours(store, chosen, moment), solid
 
         try:
             belief, (earlier, later), solid = await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
+        kept = [("map", chosen), *([("box", str(zoomed))] if zoomed else [])]  # by the links
         return page(request, "map.html", {
-            "maps": maps, "map": chosen, "span": span, "t": moment, "belief": belief,
-            "axis": time_axis.axis(*span, moment, WIDTH),
+            "maps": maps, "map": chosen, "kept": kept, "in_view": [("view", "3d")] if in_3d
+            else [], "span": span, "t": moment,
+            "belief": belief, "axis": time_axis.axis(*span, moment, WIDTH),
             "earlier": earlier, "later": later, "second": SECOND, "view3d": solid,
         }, policy=SCRIPT_CSP if in_3d else CSP)
 
@@ -182,15 +390,18 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
 
 
 def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width: int = WIDTH,
-               max_height: int = MAX_HEIGHT) -> tuple[Projection, list[DrawnRegion]]:
+               max_height: int = MAX_HEIGHT,
+               view: Projection | None = None) -> tuple[Projection, list[DrawnRegion]]:
     """The map's regions drawn top-down, in a projection that holds them and these positions
-    (metres: x, y and any more coordinates) in at most width x max_height pixels. The map page
-    and the object page's track draw on it (macros.html: floor_plan)."""
+    (metres: x, y and any more coordinates) in at most width x max_height pixels, or in the
+    view given. The map page and the object page's track draw on it (macros.html:
+    floor_plan)."""
     boxes = region_boxes(store, map_name)
-    xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
-    ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
-    view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
-                             width, max_height)
+    if view is None:
+        xs = [x for low, high in boxes.values() for x in (low[0], high[0])]
+        ys = [y for low, high in boxes.values() for y in (low[1], high[1])]
+        view = Projection.around(xs + [p[0] for p in positions], ys + [p[1] for p in positions],
+                                 width, max_height)
     regions = []
     for name, (low, high) in sorted(boxes.items()):
         (left, top), (right, bottom) = view.point(low[0], high[1]), view.point(high[0], low[1])
@@ -198,14 +409,17 @@ def floor_plan(store: MemoryStore, map_name: str | None, positions: list, width:
     return view, regions
 
 
-def lay_out(view: Projection, regions: list[DrawnRegion],
-            objects: list[DrawnObject]) -> tuple[dict[str, Label], list[Crowd]]:
-    """Labels that never overlap: the regions' names first, then the objects' (present ones
-    first, then hidden ones, the most recently seen first; LABELS_TRIED at most). The objects
-    left without a label are counted in one marker per crowd (layout.py)."""
+def lay_out(view: Projection, regions: list[DrawnRegion], objects: list[DrawnObject],
+            markers: list[Marker] = ()) -> tuple[dict[str, Label], list[Crowd]]:
+    """Labels that never overlap each other, the objects' dots or the markers: the regions'
+    names first, then the objects' (present ones first, then hidden ones, the most recently
+    seen first; LABELS_TRIED at most). The objects left without a label are counted in one
+    marker per crowd (layout.py)."""
     drawing = Layout(view.width, view.height, FONT)
     for o in objects:
         drawing.block(Box(o.x - RADIUS, o.y - RADIUS, 2 * RADIUS, 2 * RADIUS))
+    for marker in markers:
+        drawing.block(marker.blocked())
     height = FONT * 1.2
     region_labels = {}
     for r in regions:  # inside its top left corner, above it, inside its foot, below it

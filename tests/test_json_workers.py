@@ -108,3 +108,16 @@ def test_a_large_body_that_is_not_json_is_a_422(client):
     answer = post(client, b"[" + b"1," * PARALLEL_BYTES)
     assert answer.status_code == 422
     assert "not valid JSON" in answer.json()["error"]["message"]
+
+
+def test_a_worker_that_died_costs_nothing_but_time(client, store, kitchen_rgb):
+    post(client, encoded(body_of(kitchen_rgb, 300)))  # the workers run
+    for worker in multiprocessing.active_children():
+        worker.kill()
+        worker.join()
+    body = encoded(body_of(kitchen_rgb, 400))
+    answer = post(client, body)  # made here, this once
+    assert answer.status_code == 201, answer.text
+    assert all(s["created"] for s in answer.json()["scenes"])
+    assert post(client, encoded(body_of(kitchen_rgb, 500))).status_code == 201  # afresh
+    assert len(multiprocessing.active_children()) == 2

@@ -10,14 +10,18 @@ IngestService does. Small bodies are done here, where a worker's round trip woul
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.json_input import parse
 from percept_memory.memory import documents as docs
+
+log = logging.getLogger(__name__)
 
 PARALLEL_BYTES = 1 << 20  # bodies at least this large go to the workers
 
@@ -78,15 +82,22 @@ class JsonWorkers:
         self._pool: ProcessPoolExecutor | None = None
 
     def prepared(self, body: bytes, context: Mapping, threshold: int) -> tuple[
-            docs.Documents, list[docs.SceneIds]]:
+            docs.Documents, list[docs.SceneIds]] | None:
         """The documents and ids of the body's scenes, prepared by the workers, a part each;
-        an IngestError naming every problem, or NotScenes."""
+        an IngestError naming every problem, or NotScenes. None when a worker died (killed,
+        out of memory): the pool starts afresh next time, and the caller does it itself."""
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 self.processes, mp_context=multiprocessing.get_context("spawn"))
-        futures = [self._pool.submit(prepared_part, body, part, self.processes, dict(context),
-                                     threshold) for part in range(self.processes)]
-        parts: list[Part] = [future.result() for future in futures]
+        try:
+            futures = [self._pool.submit(prepared_part, body, part, self.processes,
+                                         dict(context), threshold)
+                       for part in range(self.processes)]
+            parts: list[Part] = [future.result() for future in futures]
+        except BrokenProcessPool:
+            log.warning("an ingest worker process died; starting them afresh")
+            self.close()
+            return None
         problems = [problem for part in parts for problem in part.problems]
         if problems:
             raise IngestError(problems)

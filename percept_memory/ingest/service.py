@@ -90,15 +90,15 @@ class IngestService:
         """Store the scenes of a JSON body (a scene or a list of them, as GET
         /api/schema/scene describes; NotScenes when it holds none) as ingest_batch does. A
         large body is parsed, validated and encoded by the worker processes, a part each
-        (json_batches.py); only what they cannot store as they made it (a scene stored
-        before, a write too large) goes the usual way."""
+        (json_batches.py); what they could not make (a worker died) or what cannot be
+        stored as they made it (a scene stored before, a write too large) goes the usual
+        way."""
         with self.pipeline.ingesting():
             results = None
             if self.json_workers is not None and len(body) >= PARALLEL_BYTES:
-                written, prepared = self.json_workers.prepared(body, self.limits,
-                                                               self.store.gridfs_threshold)
-                if self.store.put_documents(written):
-                    results = self._stored(prepared)
+                made = self.json_workers.prepared(body, self.limits, self.store.gridfs_threshold)
+                if made is not None and self.store.put_documents(made[0]):
+                    results = self._stored(made[1])
             if results is None:
                 items, screened = scenes_of(body)
                 results = self.ingest_batch(items, screened=screened)

@@ -142,10 +142,10 @@ class Settings(BaseSettings):
                     "`pmem consolidate` processes run apart)",
     )
     ingest_processes: int = Field(
-        default_factory=lambda: min(os.cpu_count() or 1, 4), ge=1,
+        default_factory=lambda: min(os.cpu_count() or 1, 2), ge=1,
         description="PMEM_INGEST_PROCESSES: processes that parse, validate and encode large "
-                    "JSON bodies of scenes for the web app (1: the app's own; default: the "
-                    "cores, at most 4; ~100 MB each)",
+                    "JSON bodies of scenes for the web app (1: the app's own; default: 2 "
+                    "where there are 2 cores; ~140 MB each)",
     )
     map_lease_s: float = Field(
         default=30.0, gt=0,

@@ -1,0 +1,86 @@
+"""The catalogue in MongoDB: kept by the memory pipeline, equal when rebuilt from the scenes,
+and asked which objects the home has and whether an observation was seen before."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest.service import memory_pipeline
+from percept_memory.memory.pipeline import request_rebuild
+from percept_memory.memory.schema import CATALOGUE, CATALOGUE_TRACKS
+from percept_memory.queries import catalogue
+
+from .conftest import ingest_consolidated
+
+
+@pytest.fixture(scope="module")
+def week(store):
+    week = kitchen_week.generate(days=2)
+    ingest_consolidated(store, week.scenes)
+    truth = {cluster.id: week.truth.object_at(i, j)
+             for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
+    return week, truth
+
+
+def stored_catalogue(store) -> tuple[list, list]:
+    """The models and tracks, object ids aside (a rebuild makes them afresh; models are named
+    by the stored clusters' ids)."""
+    models = [{k: v for k, v in doc.items() if k != "object_id"}
+              for doc in store.db[CATALOGUE].find().sort("_id")]
+    tracks = sorted(({k: v for k, v in doc.items() if k != "_id"}
+                     for doc in store.db[CATALOGUE_TRACKS].find()), key=lambda d: d["model"])
+    return models, tracks
+
+
+def test_the_catalogue_rebuilt_from_the_scenes_equals_the_one_built_live(store, week):
+    live = stored_catalogue(store)
+    assert live[0] and live[1]
+    request_rebuild(store)
+    memory_pipeline(store).drain(timeout=600)
+    assert stored_catalogue(store) == live
+
+
+def test_the_home_s_objects_are_entries_of_one_kind_of_object_each(store, week):
+    """Two cups of one set look the same: an entry is what an object looks like, so it may hold
+    both (identity keeps them apart by where they are), but never a cup and a plate."""
+    _, truth = week
+    found = catalogue.entries(store, limit=1000)
+    assert found and found == sorted(found, key=lambda e: (-e["times_seen"], e["entry"]))
+    mixed = []
+    for entry in found:
+        real = Counter(truth[view].split("#")[0] for view in map(_object_id, entry["views"]))
+        if len(real) > 1:
+            mixed.append((entry["names"], real))
+        assert entry["now"] is not None and entry["names"] and entry["times_seen"] >= 1
+    assert not mixed
+    assert len({e["entry"] for e in found}) == len(found)
+
+
+def test_an_observation_is_recognised_as_the_entry_holding_its_views(store, week):
+    _, truth = week
+    found = catalogue.entries(store, limit=1000)
+    entry = next(e for e in found if e["models"] > 1) if any(
+        e["models"] > 1 for e in found) else found[0]
+    view = _object_id(entry["views"][0])
+    ranked = catalogue.seen_before(store, view)
+    assert ranked[0]["entry"] == entry["entry"] and ranked[0]["inclusion"] == 1.0
+    assert ranked == sorted(ranked, key=lambda e: -e["inclusion"])
+    assert all(0 <= e["consensus"] <= 1 for e in ranked)
+
+
+def test_seen_before_an_unknown_cluster_is_not_found(store):
+    from bson import ObjectId
+
+    from percept_memory.memory.errors import NotFound
+
+    with pytest.raises(NotFound):
+        catalogue.seen_before(store, ObjectId())
+
+
+def _object_id(text: str):
+    from bson import ObjectId
+
+    return ObjectId(text)

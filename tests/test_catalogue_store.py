@@ -3,6 +3,7 @@ and asked which objects the home has and whether an observation was seen before.
 
 from __future__ import annotations
 
+import json
 from collections import Counter
 
 import pytest
@@ -84,3 +85,38 @@ def _object_id(text: str):
     from bson import ObjectId
 
     return ObjectId(text)
+
+
+def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
+    from click.testing import CliRunner
+    from fastapi.testclient import TestClient
+
+    from percept_memory.cli import main
+    from percept_memory.memory.settings import Settings
+    from percept_memory.webui.app import create_app
+
+    from .conftest import LOCAL
+
+    client = TestClient(create_app(store, Settings()), base_url=LOCAL)
+    listed = client.get("/api/catalogue", params={"limit": 3})
+    assert listed.status_code == 200
+    assert listed.json()["entries"] == catalogue.entries(store, limit=3)
+    view = listed.json()["entries"][0]["views"][0]
+    ranked = client.get(f"/api/catalogue/seen-before/{view}").json()["entries"]
+    assert ranked == catalogue.seen_before(store, _object_id(view))
+    for bad, status in (("/api/catalogue/seen-before/nothex", 422),
+                        (f"/api/catalogue/seen-before/{'0' * 24}", 404),
+                        ("/api/catalogue?limit=0", 422)):
+        answer = client.get(bad)
+        assert answer.status_code == status and "message" in answer.json()["error"]
+
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    shown = CliRunner().invoke(main, ["query", "catalogue", "--limit", "3", "--json"], env=env)
+    assert shown.exit_code == 0, shown.output
+    assert json.loads(shown.stdout) == listed.json()["entries"]
+    text = CliRunner().invoke(main, ["query", "seen-before", view], env=env)
+    assert text.exit_code == 0 and text.stdout.startswith("inclusion 1.00")
+    for args in (["query", "seen-before", "nothex"], ["query", "seen-before", "0" * 24],
+                 ["query", "catalogue", "--map", "nowhere"]):
+        failed = CliRunner().invoke(main, args, env=env)
+        assert failed.exit_code == 1 and failed.output.startswith("Error: "), failed.output

@@ -81,3 +81,12 @@ def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,
              "consensus": round(modalities_consensus(graph, union, unions), 4)}
             for (entry, score), union in zip(ranked, unions, strict=True)
             if str(entry) in found]
+
+
+def as_text(entry: dict) -> str:
+    """One line for people: names, how often and how it was seen, where it is now."""
+    now = entry["now"] or {}
+    where = f"{now.get('state') or 'unknown'} at {now.get('region') or 'an unnamed place'}"
+    names = ", ".join(entry["names"][:3]) or "unnamed"
+    return (f"{entry['entry']}  {names}: seen {entry['times_seen']} times, "
+            f"{entry['models']} views; now {where} (object {now.get('object_id')})")

@@ -1,0 +1,49 @@
+"""The long-term catalogue over HTTP: which objects this home has, and whether an observation's
+object was seen before (queries/catalogue.py)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from bson import ObjectId
+from fastapi import APIRouter, Path, Query
+from fastapi.concurrency import run_in_threadpool
+
+from percept_memory.memory.catalogue.stage import CatalogueStage
+from percept_memory.memory.store import MemoryStore
+from percept_memory.queries import catalogue
+
+from .errors import READ_ERRORS
+
+CLUSTER_ID = Path(pattern="^[0-9a-f]{24}$", description="the cluster's id (24 hexadecimal digits)")
+
+
+def catalogue_router(store: MemoryStore) -> APIRouter:
+    router = APIRouter(prefix="/api/catalogue", tags=["catalogue"])
+    stage = CatalogueStage(store)  # each map's learner, read again when its catalogue changed
+
+    @router.get("", summary="The objects this home has (the catalogue's entries)",
+                responses=READ_ERRORS)
+    async def entries(
+        map: Annotated[str | None, Query(description="only this map's entries")] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    ) -> dict[str, Any]:
+        """Each entry is an object learnt from its views, the most seen first: `views` (the
+        clusters its models began with, the longest look first), `names`, `times_seen`, the
+        belief `objects` whose tracks it gathers and where it is `now` (the one seen last)."""
+        return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}
+
+    @router.get("/seen-before/{cluster_id}", summary="Have we seen this object before?",
+                responses=READ_ERRORS)
+    async def seen_before(
+        cluster_id: Annotated[str, CLUSTER_ID],
+        limit: Annotated[int, Query(ge=1, le=100)] = 5,
+    ) -> dict[str, Any]:
+        """The entries the cluster's object may be, best first: `inclusion`, the share of the
+        cluster's views the entry holds, and `consensus`, how far its kinds of evidence agree
+        that this entry is the best match."""
+        ranked = await run_in_threadpool(catalogue.seen_before, store, ObjectId(cluster_id),
+                                         limit, stage)
+        return {"cluster_id": cluster_id, "entries": ranked}
+
+    return router

@@ -33,16 +33,25 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
-import sys
 import time
 from collections import Counter
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+import numpy as np
 
-from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, node  # noqa: E402
-from percept_memory.memory.catalogue.learning import Learner, Parameters  # noqa: E402
+from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, node
+from percept_memory.memory.catalogue.learning import Learner, Parameters
+from percept_memory.memory.types import (
+    Cluster,
+    ColorHistogram,
+    ImageROI,
+    Location,
+    Logo,
+    Scene,
+    SemanticColor,
+    Shape,
+    Text,
+)
 
 
 def objects(rng: random.Random, count: int, length: int, vocabulary: int,
@@ -144,6 +153,74 @@ def cost_at_size(entries: int, repeat: int, seed: int) -> dict:
             "ms_per_model_p95": round(1000 * times[int(0.95 * (len(times) - 1))], 3)}
 
 
+def home_scene(rng: np.random.Generator, index: int, items: list[int]) -> Scene:
+    """A scene of the robot looking at a shelf of `items`, each a product of its own: a text,
+    a logo, a shape, colours, a colour histogram and the crop's hash, noisy from look to look
+    (the hash a few bits, the histogram its bins)."""
+    clusters = []
+    for item in items:
+        look = np.random.default_rng(item)
+        histogram = look.random((8, 8)) + rng.random((8, 8)) * 0.3
+        phash = int(look.integers(0, 2**63)) ^ (1 << int(rng.integers(0, 64)))
+        clusters.append(Cluster(
+            hypotheses=[ImageROI(box=(10, 10, 50, 50), phash=f"{phash:016x}")],
+            annotations=[
+                Location(region="shelf", position=(item % 100 * 2.0, item // 100 * 2.0, 1.0)),
+                Text(text=f"brand{item} product{item // 3}"), Logo(brand=f"brand{item}"),
+                Shape(shape=("box", "cylinder", "flat")[item % 3]),
+                SemanticColor(ratios={("red", "green", "blue", "white")[item % 4]: 1.0}),
+                ColorHistogram(histogram=histogram)]))
+    return Scene(robot="bench", map="home", timestamp=10**18 + index * 10**9,
+                 clusters=clusters)
+
+
+def stage_cost(entries: int, measured: int, seed: int) -> dict:
+    """Through the user's path: scenes of 10 new objects each stored by the ingest service and
+    consolidated by the memory pipeline until the catalogue holds `entries` entries, then
+    `measured` scenes of 5 known objects and 5 new ones: the catalogue stage's time per
+    cluster, and the whole pipeline's per scene, at that size."""
+    from scratch import scratch_store
+
+    from percept_memory.ingest.service import IngestService
+    from percept_memory.memory.catalogue.stage import CatalogueStage
+    from percept_memory.queries.catalogue import entries as catalogue_entries
+
+    rng = np.random.default_rng(seed)
+    with scratch_store() as store:
+        service = IngestService(store)
+        stage = next(s for s in service.pipeline.stages if isinstance(s, CatalogueStage))
+        timed: list[tuple[int, float]] = []
+        apply = stage.apply
+
+        def timed_apply(scene_ids, map_name, session):
+            start = time.perf_counter()
+            apply(scene_ids, map_name, session)
+            timed.append((len(scene_ids), time.perf_counter() - start))
+
+        stage.apply = timed_apply
+        known = entries // 10
+        for first in range(0, known, 50):
+            service.ingest_batch([home_scene(rng, i, list(range(10 * i, 10 * i + 10)))
+                                  for i in range(first, min(first + 50, known))])
+            service.pipeline.drain()
+        size = len(stage.learner("home").members)
+        timed.clear()
+        start = time.perf_counter()
+        for i in range(known, known + measured):
+            old = [int(x) for x in rng.choice(10 * known, 5, replace=False)]
+            service.ingest_batch([home_scene(rng, i, old + list(range(10 * i, 10 * i + 5)))])
+            service.pipeline.drain()
+        elapsed = time.perf_counter() - start
+        per_cluster = sorted(1000 * t / (10 * n) for n, t in timed)
+        return {"entries_before": size, "entries_after": len(catalogue_entries(
+                    store, "home", limit=10 * (known + measured))),
+                "scenes_measured": measured,
+                "stage_ms_per_cluster_mean": round(sum(per_cluster) / len(per_cluster), 3),
+                "stage_ms_per_cluster_p95": round(per_cluster[int(0.95 * (len(per_cluster)
+                                                                          - 1))], 3),
+                "store_and_pipeline_ms_per_scene": round(1000 * elapsed / measured, 1)}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=10)
@@ -163,6 +240,9 @@ def main(argv=None) -> None:
                              "discards too few noisy models: about 240 duplicates remain)")
     parser.add_argument("--entries", type=int, default=10_000)
     parser.add_argument("--repeat", type=int, default=200)
+    parser.add_argument("--stage-entries", type=int, default=10_000,
+                        help="the catalogue's size when the pipeline stage is timed (0: skip)")
+    parser.add_argument("--stage-scenes", type=int, default=100)
     args = parser.parse_args(argv)
     runs = [simulate(seed, args) for seed in range(args.first_seed,
                                                    args.first_seed + args.seeds)]
@@ -177,7 +257,9 @@ def main(argv=None) -> None:
                 run["objects_learnt"] == args.objects and not run["corrupted_clusters"]
                 for run in runs),
             "per_seed": every, "runs": runs},
-        "cost": cost_at_size(args.entries, args.repeat, args.first_seed),
+        "learner_cost": cost_at_size(args.entries, args.repeat, args.first_seed),
+        "stage_cost": stage_cost(args.stage_entries, args.stage_scenes, args.first_seed)
+        if args.stage_entries else None,
     }, indent=1))
 
 

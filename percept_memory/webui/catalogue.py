@@ -1,24 +1,41 @@
 """The long-term catalogue over HTTP: which objects this home has, and whether an observation's
-object was seen before (queries/catalogue.py)."""
+object was seen before (queries/catalogue.py), as JSON and as the catalogue page."""
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
 from bson import ObjectId
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import HTMLResponse
 
 from percept_memory.memory.catalogue.stage import CatalogueStage
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries import catalogue
 
 from .errors import READ_ERRORS
+from .html import page
 
 CLUSTER_ID = Path(pattern="^[0-9a-f]{24}$", description="the cluster's id (24 hexadecimal digits)")
 
 
 def catalogue_router(store: MemoryStore) -> APIRouter:
+    """The API's routes and the page's."""
+    router = APIRouter()
+    router.include_router(_api(store))
+
+    @router.get("/catalogue", include_in_schema=False, response_class=HTMLResponse)
+    async def catalogue_page(request: Request, map: str | None = None,
+                             limit: Annotated[int, Query(ge=1, le=1000)] = 100
+                             ) -> HTMLResponse:
+        found = await run_in_threadpool(catalogue.entries, store, map or None, limit)
+        return page(request, "catalogue.html", {"entries": found, "map_name": map})
+
+    return router
+
+
+def _api(store: MemoryStore) -> APIRouter:
     router = APIRouter(prefix="/api/catalogue", tags=["catalogue"])
     stage = CatalogueStage(store)  # each map's learner, read again when its catalogue changed
 

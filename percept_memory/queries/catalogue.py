@@ -75,12 +75,12 @@ def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,
     learner = (stage or CatalogueStage(store)).learner(scene.get("map", ""))
     ranked = learner.classify(graph)[:limit]
     unions = [learner.union(entry) for entry, _ in ranked]
-    found = {e["entry"]: e for e in entries(store, only=[entry for entry, _ in ranked],
+    found = {e["entry"]: e for e in entries(store, only=[ObjectId(e) for e, _ in ranked],
                                             limit=limit)}
-    return [{**found[str(entry)], "inclusion": round(score, 4),
+    return [{**found[str(ObjectId(entry))], "inclusion": round(score, 4),
              "consensus": round(modalities_consensus(graph, union, unions), 4)}
             for (entry, score), union in zip(ranked, unions, strict=True)
-            if str(entry) in found]
+            if str(ObjectId(entry)) in found]
 
 
 def as_text(entry: dict) -> str:

@@ -34,6 +34,7 @@ class Parameters:
     compared_singletons: int = 30  # the singletons a new model is compared with, most alike first
     recognised: float = 0.95  # classification score "near 1": only its cluster is updated
     max_modalities: int = 2  # of the whole system, normalising the similarity (eq. 5.7)
+    common_element: int = 32  # held by more clusters than this, it finds no candidates
 
     @property
     def max_edges(self) -> int:
@@ -66,11 +67,26 @@ class Learner:
     # --- classification (algorithm 3) ---------------------------------------------------------
 
     def classify(self, graph: GraphOfViews) -> list[tuple[Hashable, float]]:
-        """Every cluster sharing anything with the graph, with inclusion(g, c) (eq. 6.2), best
-        first (ties by cluster name)."""
+        """The clusters sharing something with the graph, with inclusion(g, c) (eq. 6.2), best
+        first (ties by cluster name). The candidates are the clusters sharing an element that
+        few clusters hold (as a text retrieval engine skips stop words); only when there is
+        none, those sharing common ones ("box", "red"). A candidate's score is exact."""
         hits: Counter = Counter()
+        common = []
         for element in graph.elements:
-            hits.update(self._index.get(element, ()))
+            clusters = self._index.get(element)
+            if clusters is None:
+                continue
+            if len(clusters) > self.params.common_element:
+                common.append(clusters)
+            else:
+                hits.update(clusters)
+        if hits:
+            for cluster in hits:
+                hits[cluster] += sum(cluster in clusters for clusters in common)
+        else:
+            for clusters in common:
+                hits.update(clusters)
         n = len(graph)
         return sorted(((c, k / n) for c, k in hits.items()), key=lambda x: (-x[1], x[0]))
 

@@ -46,8 +46,9 @@ def _api(store: MemoryStore) -> APIRouter:
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     ) -> dict[str, Any]:
         """Each entry is an object learnt from its views, the most seen first: `views` (the
-        clusters its models began with, the longest look first), `names`, `times_seen`, the
-        belief `objects` whose tracks it gathers and where it is `now` (the one seen last)."""
+        clusters its models began with, the longest look first), `names`, the belief `objects`
+        whose tracks it gathers, `times_seen` (how often they were seen) and where it is
+        `now` (the one seen last)."""
         return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}
 
     @router.get("/seen-before/{cluster_id}", summary="Have we seen this object before?",

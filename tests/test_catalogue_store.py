@@ -72,6 +72,27 @@ def test_an_observation_is_recognised_as_the_entry_holding_its_views(store, week
     assert all(0 <= e["consensus"] <= 1 for e in ranked)
 
 
+def test_the_entries_are_the_connected_components_of_the_similarity_graph(store, week):
+    graph = catalogue.similarity_graph(store, "kitchen-week")
+    entry_of = {m["model"]: m["entry"] for m in graph["models"]}
+    assert graph["links"] and all(entry_of[link["a"]] == entry_of[link["b"]]
+                                  for link in graph["links"])
+    neighbours: dict = {}
+    for link in graph["links"]:
+        neighbours.setdefault(link["a"], set()).add(link["b"])
+        neighbours.setdefault(link["b"], set()).add(link["a"])
+    for model, entry in entry_of.items():  # reached from the model naming its entry
+        seen, todo = {entry}, [entry]
+        while todo:
+            for other in neighbours.get(todo.pop(), ()):
+                if other not in seen:
+                    seen.add(other)
+                    todo.append(other)
+        assert model in seen
+    assert {e["entry"]: e["models"] for e in catalogue.entries(store, limit=1000)} == dict(
+        Counter(entry_of.values()))
+
+
 def test_seen_before_an_unknown_cluster_is_not_found(store):
     from bson import ObjectId
 
@@ -104,7 +125,10 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     view = listed.json()["entries"][0]["views"][0]
     ranked = client.get(f"/api/catalogue/seen-before/{view}").json()["entries"]
     assert ranked == catalogue.seen_before(store, _object_id(view))
-    for bad, status in (("/api/catalogue/seen-before/nothex", 422),
+    graph = client.get("/api/catalogue/graph", params={"map": "kitchen-week"})
+    assert graph.json() == catalogue.similarity_graph(store, "kitchen-week")
+    for bad, status in (("/api/catalogue/graph", 422),
+                        ("/api/catalogue/seen-before/nothex", 422),
                         (f"/api/catalogue/seen-before/{'0' * 24}", 404),
                         ("/api/catalogue?limit=0", 422)):
         answer = client.get(bad)

@@ -90,3 +90,18 @@ def as_text(entry: dict) -> str:
     names = ", ".join(entry["names"][:3]) or "unnamed"
     return (f"{entry['entry']}  {names}: seen {entry['times_seen']} times, "
             f"{entry['models']} views; now {where} (object {now.get('object_id')})")
+
+
+def similarity_graph(store: MemoryStore, map_name: str, limit: int = 10_000) -> dict:
+    """The catalogue's similarity graph of one map: its partial models (named by the cluster
+    each began with, with its entry, object and length) and the links kept between them, each
+    once, with their weight (Duceux algorithm 5). The entries are its connected components."""
+    models, links = [], []
+    for doc in store.db[CATALOGUE].find({"map": map_name}, {"elements": 0}).sort(
+            "_id").limit(limit):
+        models.append({"model": str(doc["_id"]), "entry": str(doc["entry"]),
+                       "object_id": str(doc["object_id"]) if doc["object_id"] else None,
+                       "length": doc["length"]})
+        links += [{"a": str(doc["_id"]), "b": str(other), "weight": round(weight, 4)}
+                  for other, weight in doc["edges"] if doc["_id"] < other]
+    return {"map": map_name, "models": models, "links": links}

@@ -51,6 +51,17 @@ def _api(store: MemoryStore) -> APIRouter:
         `now` (the one seen last)."""
         return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}
 
+    @router.get("/graph", summary="The catalogue's similarity graph of a map",
+                responses=READ_ERRORS)
+    async def graph(
+        map: Annotated[str, Query(description="the map")],
+        limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000,
+    ) -> dict[str, Any]:
+        """Its partial `models` (each named by the cluster it began with, with its `entry`)
+        and the `links` kept between them with their weight; an entry is a connected
+        component."""
+        return await run_in_threadpool(catalogue.similarity_graph, store, map, limit)
+
     @router.get("/seen-before/{cluster_id}", summary="Have we seen this object before?",
                 responses=READ_ERRORS)
     async def seen_before(

@@ -177,18 +177,26 @@ class Learner:
     # --- algorithms 9, 6, 7: clusters -------------------------------------------------------
 
     def _recluster(self, touched: set) -> None:
-        """The connected components around what changed (algorithm 9), reduced (algorithm 6)."""
+        """The connected components around what changed (algorithm 9), reduced (algorithm 6).
+        A cluster that comes out with the same models, or more (a new model joined it), is
+        kept and grown: its union and index entries are the costly part."""
         dissolved = self._dissolved | {self.cluster_of[t] for t in touched
                                        if t in self.cluster_of}
         nodes = {m for c in dissolved for m in self.members[c]} | touched
         nodes = {m for m in nodes if m in self.models}
-        before = {m: self.cluster_of.pop(m, None) for m in nodes}
-        for c in dissolved:
-            self._drop_cluster(c)
         self._dissolved = set()
-        for component in self._components(nodes):
-            for part in self._reduced(component):
-                self._make_cluster(part, before)
+        parts = [part for component in self._components(nodes)
+                 for part in self._reduced(component)]
+        grown = {name: part - self.members[name] for part in parts
+                 if (name := min(part)) in dissolved and self.members[name] <= part}
+        for name in dissolved - grown.keys():
+            self._drop_cluster(name)
+        for part in parts:
+            name = min(part)
+            if name in grown:
+                self._grow_cluster(name, grown[name])
+            else:
+                self._make_cluster(part)
 
     def _components(self, nodes: set) -> Iterator[set]:
         todo = set(nodes)
@@ -250,13 +258,13 @@ class Learner:
         del self.edges[a][b], self.edges[b][a]
         self.changed |= {a, b}
 
-    def _make_cluster(self, members: set, before: dict) -> None:
+    def _make_cluster(self, members: set) -> None:
         name = min(members)
         self.members[name] = frozenset(members)
         union: Counter = Counter()
         for m in members:
             union.update(self.models[m].graph.elements)
-            if before.get(m) != name:
+            if self.cluster_of.get(m) != name:
                 self.changed.add(m)
             self.cluster_of[m] = name
         self._union[name] = union
@@ -264,6 +272,20 @@ class Learner:
             self._index.setdefault(element, set()).add(name)
         if len(members) == 1:
             self.singletons.add(name)
+
+    def _grow_cluster(self, name: Hashable, joined: set) -> None:
+        if not joined:
+            return
+        union = self._union[name]
+        for m in joined:
+            for element in self.models[m].graph.elements:
+                if not union[element]:
+                    self._index.setdefault(element, set()).add(name)
+                union[element] += 1
+            self.cluster_of[m] = name
+            self.changed.add(m)
+        self.members[name] = self.members[name] | joined
+        self.singletons.discard(name)
 
     def _drop_cluster(self, name: Hashable) -> None:
         for element in self._union.pop(name):

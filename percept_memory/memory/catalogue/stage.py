@@ -135,15 +135,22 @@ class CatalogueStage:
                           track["observations"])
 
     def _write(self, learner: Learner, map_name: str, objects: dict, session) -> None:
-        """The models that changed, and a new version of the map's catalogue."""
+        """The models that changed, and a new version of the map's catalogue. `objects`: the
+        object of each model of this batch's tracks (the others' are read)."""
         writes = []
+        elsewhere = [ObjectId(k) for k in learner.changed if k in learner.models
+                     and k not in objects]
+        if elsewhere:
+            stored = self.models.find({"_id": {"$in": elsewhere}}, {"object_id": 1},
+                                      session=session)
+            objects = {**objects, **{doc["_id"].binary: doc["object_id"] for doc in stored}}
         for key in sorted(learner.changed):
             model_id = ObjectId(key)
             if key not in learner.models:
                 writes.append(DeleteOne({"_id": model_id}))
                 continue
             model = learner.models[key]
-            object_id = objects.get(key) or self._object_of(model_id, session)
+            object_id = objects.get(key)
             writes.append(ReplaceOne({"_id": model_id}, {
                 "map": map_name, "object_id": object_id,
                 "elements": sorted(model.graph.elements), "length": model.length,
@@ -155,10 +162,6 @@ class CatalogueStage:
         version = ObjectId()
         self.maps.update_one({"_id": map_name}, {"$set": {VERSION: version}}, session=session)
         self._learners[map_name] = (version, learner)
-
-    def _object_of(self, model_id: ObjectId, session) -> ObjectId | None:
-        doc = self.models.find_one({"_id": model_id}, {"object_id": 1}, session=session)
-        return doc and doc["object_id"]
 
     def reset(self, map_name: str) -> None:
         """Forget the map's catalogue (it is learnt again from the map's scenes)."""

@@ -676,13 +676,15 @@ class _Queries(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         from percept_memory.queries.engine import QUERIES
 
-        return [name.replace("_", "-") for name in QUERIES]
+        return [name.replace("_", "-") for name in QUERIES] + super().list_commands(ctx)
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         from percept_memory.queries.engine import QUERIES
 
         name = cmd_name.replace("-", "_")
-        return _query_command(name, QUERIES[name][0]) if name in QUERIES else None
+        if name in QUERIES:
+            return _query_command(name, QUERIES[name][0])
+        return super().get_command(ctx, cmd_name)  # those of the long-term catalogue
 
 
 @main.group(cls=_Queries)
@@ -748,6 +750,50 @@ def _query_command(name: str, model) -> click.Command:
                          params=[*model_params(model), as_json],
                          help=(QUERIES[name][1].__doc__ or "").strip().split("\n\n")[0],
                          epilog=example(*EXAMPLES[name]))
+
+
+@query.command("catalogue", epilog=example("pmem query catalogue --limit 5"))
+@click.option("--map", "map_name", help="only this map's entries")
+@click.option("--limit", type=click.IntRange(1, 1000), default=100, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="print the entries as JSON")
+@click.pass_obj
+def catalogue_entries(settings: Settings, map_name: str | None, limit: int,
+                      as_json: bool) -> None:
+    """Which objects this home has: the long-term catalogue's entries, the most seen first."""
+    from percept_memory.memory.store import MemoryStore
+    from percept_memory.queries import catalogue
+
+    with MemoryStore.open(settings) as store:
+        found = catalogue.entries(store, map_name, limit)
+    if not found:
+        raise click.ClickException("the catalogue is empty (no scene consolidated yet?)")
+    click.echo(json.dumps(found, indent=1) if as_json else
+               "\n".join(map(catalogue.as_text, found)))
+
+
+@query.command("seen-before", epilog=example("pmem query seen-before CLUSTER_ID"))
+@click.argument("cluster_id")
+@click.option("--limit", type=click.IntRange(1, 100), default=5, show_default=True)
+@click.option("--json", "as_json", is_flag=True, help="print the entries as JSON")
+@click.pass_obj
+def seen_before(settings: Settings, cluster_id: str, limit: int, as_json: bool) -> None:
+    """Have we seen this cluster's object before: the catalogue entries it may be, best first,
+    with the share of its views each holds (inclusion) and how far its kinds of evidence
+    agree (consensus)."""
+    from bson import ObjectId
+
+    from percept_memory.memory.store import MemoryStore
+    from percept_memory.queries import catalogue
+
+    if not ObjectId.is_valid(cluster_id):
+        raise click.ClickException(f"{cluster_id!r} is not a cluster id (24 hex digits)")
+    with MemoryStore.open(settings) as store:
+        ranked = catalogue.seen_before(store, ObjectId(cluster_id), limit)
+    if not ranked:
+        raise click.ClickException("nothing in the catalogue looks like it")
+    click.echo(json.dumps(ranked, indent=1) if as_json else "\n".join(
+        f"inclusion {e['inclusion']:.2f}  consensus {e['consensus']:.2f}  {catalogue.as_text(e)}"
+        for e in ranked))
 
 
 # --- pmem export: training data ----------------------------------------------------------------

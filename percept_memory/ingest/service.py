@@ -26,6 +26,7 @@ from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
 from percept_memory.ingest.json_batches import PARALLEL_BYTES, JsonWorkers, scenes_of
 from percept_memory.ingest.json_input import input_problems
+from percept_memory.memory.catalogue.stage import CatalogueStage
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.documents import SceneIds
 from percept_memory.memory.pipeline import Pipeline
@@ -207,9 +208,11 @@ class IngestService:
 
 
 def memory_pipeline(store: MemoryStore, settings: Settings | None = None) -> Pipeline:
-    """The memory pipeline with its stages: identity consolidation, then lookup jobs."""
+    """The memory pipeline with its stages: identity consolidation, the long-term catalogue
+    (which needs the objects identity linked), then lookup jobs."""
     lease_s = (settings or Settings()).map_lease_s
-    return Pipeline(store, [Consolidation(store), LookupEnqueuer(store)], lease_s=lease_s)
+    return Pipeline(store, [Consolidation(store), CatalogueStage(store), LookupEnqueuer(store)],
+                    lease_s=lease_s)
 
 
 def in_map(scenes: Iterable[Scene], name: str) -> Iterator[Scene]:

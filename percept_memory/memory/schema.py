@@ -22,6 +22,8 @@ LOOKUP_CACHE = "lookup_cache"
 TYPES = "types"
 TERMS = "terms"  # the words clusters use, digits aside, with their trigrams (for misspellings)
 LABELS = "labels"  # labels of several words, by their words (objects by any word of a name)
+CATALOGUE = "catalogue"  # the partial models of the long-term catalogue (memory/catalogue/)
+CATALOGUE_TRACKS = "catalogue_tracks"  # per object, the partial model its views go to now
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
 
@@ -80,6 +82,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         IndexModel([("map", ASCENDING), ("last_seen", DESCENDING), ("last_cluster", DESCENDING)],
                    name="map_seen"),
     ],
+    CATALOGUE: [IndexModel([("map", ASCENDING), ("entry", ASCENDING)], name="map_entry"),
+                IndexModel([("object_id", ASCENDING)], name="object")],
+    CATALOGUE_TRACKS: [IndexModel([("map", ASCENDING)], name="map")],
     # the next scenes each map's consolidator takes: in time order, those not held
     OUTBOX: [IndexModel([("map", ASCENDING), ("held", ASCENDING), ("time", ASCENDING),
                          ("_id", ASCENDING)], name="map_next")],

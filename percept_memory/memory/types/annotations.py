@@ -4,6 +4,8 @@ Adding a type is adding one class here (or anywhere) with `@stored_type`: storin
 querying by its fields follow from its annotations. A class may also say
 - `labels()`: the names it gives the object (searchable, used to name objects);
 - `texts()`: free text to make searchable;
+- `views()`: the view descriptors it gives the object's graph of views, words of the type's own
+  dictionary (the long-term catalogue, memory/catalogue/, Duceux 5.3);
 - `similarity(a, b)`: how alike two observations look by this kind of evidence, in [0, 1]
   (identity resolution combines the kinds two observations share, thesis 6.1.2); or, faster,
   `similarities(a, b)` for two lists at once, a matrix (the built-in types: compare.py).
@@ -38,6 +40,10 @@ class Annotation(Identifiable):
         return []
 
     def texts(self) -> list[str]:
+        return []
+
+    def views(self) -> list[str]:
+        """None by default: where an object is, or who tracked it, is not what it looks like."""
         return []
 
     @staticmethod
@@ -85,6 +91,9 @@ class Classification(Annotation):
     def labels(self) -> list[str]:
         return [self.class_name]
 
+    def views(self) -> list[str]:
+        return [self.class_name]
+
     @staticmethod
     def similarities(a: list[Classification], b: list[Classification]) -> np.ndarray:
         """The overlap of the per-class confidences where both give them, else whether the
@@ -112,6 +121,9 @@ class Detection(Annotation):
     def labels(self) -> list[str]:
         return [self.name]
 
+    def views(self) -> list[str]:
+        return [self.name]
+
     @staticmethod
     def similarities(a: list[Detection], b: list[Detection]) -> np.ndarray:
         return compare.same_labels([x.name for x in a], [y.name for y in b])
@@ -125,6 +137,9 @@ class Shape(Annotation):
     confidence: Probability | None = None
 
     def labels(self) -> list[str]:
+        return [self.shape]
+
+    def views(self) -> list[str]:
         return [self.shape]
 
     @staticmethod
@@ -141,6 +156,9 @@ class SemanticColor(Annotation):
     def labels(self) -> list[str]:
         return [name for name, share in self.ratios.items() if share >= 0.2]
 
+    def views(self) -> list[str]:
+        return self.labels()
+
     @staticmethod
     def similarities(a: list[SemanticColor], b: list[SemanticColor]) -> np.ndarray:
         return compare.shared_share([x.ratios for x in a], [y.ratios for y in b])
@@ -152,6 +170,10 @@ class ColorHistogram(Annotation):
 
     histogram: NDArray
     space: str = "HS"
+
+    def views(self) -> list[str]:
+        """Its three fullest bins: a coarse word that the same side of an object repeats."""
+        return compare.top_bins(self.histogram, 3, self.space)
 
     @staticmethod
     def similarities(a: list[ColorHistogram], b: list[ColorHistogram]) -> np.ndarray:
@@ -167,6 +189,9 @@ class FeatureVector(Annotation):
 
     name: str
     vector: NDArray
+
+    def views(self) -> list[str]:
+        return compare.visual_words(self.name, self.vector)
 
     @staticmethod
     def similarities(a: list[FeatureVector], b: list[FeatureVector]) -> np.ndarray:
@@ -187,6 +212,9 @@ class Text(Annotation):
     def texts(self) -> list[str]:
         return [self.text]
 
+    def views(self) -> list[str]:
+        return sorted(compare.words(self.text))
+
     @staticmethod
     def similarities(a: list[Text], b: list[Text]) -> np.ndarray:
         return compare.shared_words([x.text for x in a], [y.text for y in b])
@@ -203,6 +231,9 @@ class Logo(Annotation):
     box: Box | None = None
 
     def labels(self) -> list[str]:
+        return [self.brand]
+
+    def views(self) -> list[str]:
         return [self.brand]
 
     @staticmethod
@@ -227,6 +258,9 @@ class Product(Annotation):
     def labels(self) -> list[str]:
         return [label for label in (self.name, self.brand) if label]
 
+    def views(self) -> list[str]:
+        return self.labels()
+
     def texts(self) -> list[str]:
         return [f"{key} {value}" for key, value in self.properties.items()]
 
@@ -243,6 +277,9 @@ class Barcode(Annotation):
     symbology: str = ""
 
     def labels(self) -> list[str]:
+        return [self.code]
+
+    def views(self) -> list[str]:
         return [self.code]
 
     @staticmethod

@@ -113,3 +113,28 @@ def hash_nearness(a: Sequence[str | None], b: Sequence[str | None], sigma_bits: 
     out[np.array([h is None for h in a])[:, None] | np.array([h is None for h in b])[None, :]] \
         = np.nan
     return out
+
+
+def top_bins(histogram: np.ndarray, count: int, prefix: str) -> list[str]:
+    """The names of a histogram's `count` fullest non-empty bins (a quantised colour view)."""
+    flat = np.asarray(histogram, dtype=float).ravel()
+    order = np.argsort(-flat, kind="stable")[:count]
+    return [f"{prefix}{i}" for i in order if flat[i] > 0]
+
+
+@lru_cache(maxsize=64)
+def _hyperplanes(name: str, size: int, bands: int, bits: int) -> np.ndarray:
+    """The same random hyperplanes for a descriptor name and size in every process."""
+    seed = int.from_bytes(name.encode()[:8].ljust(8, b"\0"), "big") ^ size
+    return np.random.default_rng(seed).standard_normal((bands * bits, size))
+
+
+def visual_words(name: str, vector: np.ndarray, bands: int = 4, bits: int = 8) -> list[str]:
+    """A feature vector quantised into `bands` visual words: the signs of its projections on
+    random hyperplanes, `bits` at a time (vectors at a small angle share most words)."""
+    v = np.nan_to_num(np.asarray(vector, dtype=float).ravel())
+    if not v.any():
+        return []
+    signs = (_hyperplanes(name, v.size, bands, bits) @ v > 0).reshape(bands, bits)
+    codes = signs @ (1 << np.arange(bits))
+    return [f"{name}.{band}.{code}" for band, code in enumerate(codes)]

@@ -14,6 +14,10 @@ from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3, check_pixels
 class Hypothesis(Model):
     """Base of the ways to say "there may be an object here"."""
 
+    def views(self) -> list[str]:
+        """View descriptors of the object's look (annotations.Annotation.views): none here."""
+        return []
+
 
 PHASH_PATTERN = "^[0-9a-f]{16}$"
 PHASH_SIGMA_BITS = 6.5  # g(4 bits) = 0.91, g(12) = 0.43, g(28) = 0.01
@@ -36,6 +40,12 @@ class ImageROI(Hypothesis):
         if crop is not None:
             check_pixels(crop.data, image_limit(info, "max_crop_pixels"))
         return crop
+
+    def views(self) -> list[str]:
+        """The hash's four 16-bit bands: crops a few bits apart share most of them (locality
+        sensitive hashing by bands), crops of other objects almost none."""
+        return [f"{band}.{self.phash[4 * band:4 * band + 4]}" for band in range(4)] \
+            if self.phash else []
 
     @staticmethod
     def similarities(a: list[ImageROI], b: list[ImageROI]) -> np.ndarray:

@@ -1,0 +1,297 @@
+"""Unsupervised, incremental object learning by graph clustering (Duceux 6.3.3).
+
+Every partial model (the graph of views of one observation run of an object) is a node of a
+similarity graph that keeps only each node's strongest edges (algorithm 5); the clusters, the
+objects learnt, are its connected components (algorithm 9), cut at their weakest edges when they
+hold more than a few models (algorithm 6); singletons beyond a limit are forgotten, the shortest
+observation first (algorithm 7). A new model is compared only with the clusters that classify it
+best (algorithm 3) and the singletons, and whatever it changes (a merge of two duplicates, a
+corrupted cluster split) is local (algorithm 8). No decision is final: a later model can undo it.
+
+Classification reads an inverted index (element -> clusters whose union holds it), so learning a
+model costs what the model shares with the memory, not the size of the memory.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Hashable, Iterable, Iterator
+from dataclasses import dataclass
+
+from .graph_of_views import GraphOfViews, inclusion_degree, normalized_jmi
+
+
+@dataclass(frozen=True)
+class Parameters:
+    """The thesis' settings on its real data set (6.4.2): thresholds 0.95 and 0.01, 5 models
+    per cluster and so 4 edges per node, the 2 best clusters, 30 singletons."""
+
+    high_inclusion: float = 0.95  # a model this much included in another adds nothing to it
+    low_similarity: float = 0.01  # below: the two models do not belong together
+    max_models_per_cluster: int = 5
+    closest_clusters: int = 2  # k of algorithm 8
+    max_singletons: int = 30
+    compared_singletons: int = 30  # the singletons a new model is compared with, most alike first
+    recognised: float = 0.95  # classification score "near 1": only its cluster is updated
+    max_modalities: int = 2  # of the whole system, normalising the similarity (eq. 5.7)
+    common_element: int = 32  # held by more clusters than this, it finds no candidates
+
+    @property
+    def max_edges(self) -> int:
+        """One less than the models of a cluster: exactly a fully connected cluster (6.3.3)."""
+        return self.max_models_per_cluster - 1
+
+
+@dataclass(frozen=True, slots=True)
+class PartialModel:
+    graph: GraphOfViews
+    length: float  # how much was observed: the shortest singleton is forgotten first
+
+
+class Learner:
+    """The similarity graph and its clusters. Model ids must be ordered (ObjectIds, ints): a
+    cluster is named by its smallest model id, so it keeps its name while that model stays."""
+
+    def __init__(self, params: Parameters | None = None):
+        self.params = params or Parameters()
+        self.models: dict[Hashable, PartialModel] = {}
+        self.edges: dict[Hashable, dict[Hashable, float]] = {}
+        self.cluster_of: dict[Hashable, Hashable] = {}
+        self.members: dict[Hashable, frozenset] = {}
+        self.singletons: set[Hashable] = set()
+        self._union: dict[Hashable, Counter] = {}  # cluster -> element -> models holding it
+        self._index: dict[str, set[Hashable]] = {}  # element -> clusters whose union holds it
+        self._dissolved: set[Hashable] = set()  # clusters to recompute
+        self.changed: set[Hashable] = set()  # models added, removed, relinked or moved
+
+    # --- classification (algorithm 3) ---------------------------------------------------------
+
+    def classify(self, graph: GraphOfViews) -> list[tuple[Hashable, float]]:
+        """The clusters sharing something with the graph, with inclusion(g, c) (eq. 6.2), best
+        first (ties by cluster name). The candidates are the clusters sharing an element that
+        few clusters hold (as a text retrieval engine skips stop words); only when there is
+        none, those sharing common ones ("box", "red"). A candidate's score is exact."""
+        hits: Counter = Counter()
+        common = []
+        for element in graph.elements:
+            clusters = self._index.get(element)
+            if clusters is None:
+                continue
+            if len(clusters) > self.params.common_element:
+                common.append(clusters)
+            else:
+                hits.update(clusters)
+        if hits:
+            for cluster in hits:
+                hits[cluster] += sum(cluster in clusters for clusters in common)
+        else:
+            for clusters in common:
+                hits.update(clusters)
+        n = len(graph)
+        return sorted(((c, k / n) for c, k in hits.items()), key=lambda x: (-x[1], x[0]))
+
+    def union(self, cluster: Hashable) -> GraphOfViews:
+        """The cluster's models merged into one (6.3.3: the union of partial models)."""
+        return GraphOfViews(frozenset(self._union[cluster]))
+
+    # --- learning (algorithm 8) ---------------------------------------------------------------
+
+    def learn(self, model_id: Hashable, graph: GraphOfViews, length: float) -> None:
+        """Take in a partial model (again, when its observation grew)."""
+        if model_id in self.models:
+            self.forget(model_id)
+        ranked = self.classify(graph)
+        self._add(model_id, PartialModel(graph, length))
+        touched = {model_id}
+        if ranked and ranked[0][1] >= self.params.recognised:
+            touched |= self._update_similarity_graph(model_id, self.members[ranked[0][0]])
+        elif ranked:  # in between (nothing in common: a singleton, line 5)
+            best = [c for c, _ in ranked[:self.params.closest_clusters]]
+            near_singletons = [c for c, _ in ranked if c in self.singletons]
+            compared = [m for c in best for m in sorted(self.members[c])]
+            compared += [c for c in near_singletons[:self.params.compared_singletons]
+                         if c not in best]
+            touched |= self._update_similarity_graph(model_id, compared)
+        self._recluster(touched)
+        self._reduce_singletons()
+
+    @classmethod
+    def restored(cls, params: Parameters, models: Iterable[tuple]) -> Learner:
+        """A learner from its stored models: (id, graph, length, {neighbour: weight})."""
+        learner = cls(params)
+        rows = list(models)
+        for model_id, graph, length, _ in rows:
+            learner._add(model_id, PartialModel(graph, length))
+        for model_id, _, _, edges in rows:
+            for other, weight in edges.items():
+                if other in learner.models:
+                    learner._link(model_id, other, weight)
+        learner._recluster(set(learner.models))
+        learner.changed.clear()
+        return learner
+
+    def forget(self, model_id: Hashable) -> None:
+        """Remove a model and its edges (its cluster is recomputed)."""
+        touched = self._remove(model_id)
+        self._recluster(touched)
+
+    # --- algorithm 5: the similarity graph --------------------------------------------------
+
+    def _update_similarity_graph(self, g: Hashable, compared: Iterable[Hashable]) -> set:
+        p = self.params
+        touched: set = set()
+        for m in compared:
+            if m == g or m not in self.models:
+                continue
+            new, old = self.models[g].graph, self.models[m].graph
+            if inclusion_degree(new, old) > p.high_inclusion:  # g adds nothing to m
+                touched |= self._absorb(g, m)
+                return touched
+            if inclusion_degree(old, new) > p.high_inclusion:  # m adds nothing to g
+                touched |= self._absorb(m, g)
+                continue
+            weight = normalized_jmi(new, old, p.max_modalities)
+            if weight > p.low_similarity:
+                self._link(g, m, weight)
+                touched |= {m} | self._filter_edges(g) | self._filter_edges(m)
+        return touched
+
+    def _absorb(self, gone: Hashable, into: Hashable) -> set:
+        """Discard a model, its edges attached to the one that includes it, then filtered."""
+        for other, weight in self.edges[gone].items():
+            if other != into:
+                self._link(into, other, max(weight, self.edges[into].get(other, 0.0)))
+        touched = self._remove(gone)
+        return touched | {into} | self._filter_edges(into)
+
+    def _filter_edges(self, m: Hashable) -> set:
+        """Keep the model's max_edges strongest edges: returns the models that lost one."""
+        links = self.edges[m]
+        lost = set()
+        while len(links) > self.params.max_edges:
+            weakest = min(links, key=lambda other: (links[other], other))
+            self._unlink(m, weakest)
+            lost.add(weakest)
+        return lost
+
+    # --- algorithms 9, 6, 7: clusters -------------------------------------------------------
+
+    def _recluster(self, touched: set) -> None:
+        """The connected components around what changed (algorithm 9), reduced (algorithm 6).
+        A cluster that comes out with the same models, or more (a new model joined it), is
+        kept and grown: its union and index entries are the costly part."""
+        dissolved = self._dissolved | {self.cluster_of[t] for t in touched
+                                       if t in self.cluster_of}
+        nodes = {m for c in dissolved for m in self.members[c]} | touched
+        nodes = {m for m in nodes if m in self.models}
+        self._dissolved = set()
+        parts = [part for component in self._components(nodes)
+                 for part in self._reduced(component)]
+        grown = {name: part - self.members[name] for part in parts
+                 if (name := min(part)) in dissolved and self.members[name] <= part}
+        for name in dissolved - grown.keys():
+            self._drop_cluster(name)
+        for part in parts:
+            name = min(part)
+            if name in grown:
+                self._grow_cluster(name, grown[name])
+            else:
+                self._make_cluster(part)
+
+    def _components(self, nodes: set) -> Iterator[set]:
+        todo = set(nodes)
+        while todo:
+            start = todo.pop()
+            component, stack = {start}, [start]
+            while stack:
+                for other in self.edges[stack.pop()]:
+                    if other not in component:
+                        component.add(other)
+                        stack.append(other)
+            todo -= component
+            yield component
+
+    def _reduced(self, component: set) -> Iterator[set]:
+        """Cut a too-large cluster at its weakest edge until every part is small enough."""
+        stack = [component]
+        while stack:
+            part = stack.pop()
+            if len(part) <= self.params.max_models_per_cluster:
+                yield part
+                continue
+            a, b = min(((a, b) for a in part for b in self.edges[a] if a < b),
+                       key=lambda e: (self.edges[e[0]][e[1]], e))
+            self._unlink(a, b)
+            stack.extend(self._components(part))
+
+    def _reduce_singletons(self) -> None:
+        """Forget the shortest observations among the singletons beyond the limit."""
+        while len(self.singletons) > self.params.max_singletons:
+            shortest = min(self.singletons, key=lambda s: (self.models[s].length, s))
+            self._remove(shortest)
+            self._dissolved.discard(shortest)
+            self._drop_cluster(shortest)
+
+    # --- bookkeeping ------------------------------------------------------------------------
+
+    def _add(self, m: Hashable, model: PartialModel) -> None:
+        self.models[m] = model
+        self.edges[m] = {}
+        self.changed.add(m)
+
+    def _remove(self, m: Hashable) -> set:
+        neighbours = set(self.edges[m])
+        for other in neighbours:
+            self._unlink(m, other)
+        del self.models[m], self.edges[m]
+        cluster = self.cluster_of.pop(m, None)
+        if cluster is not None:
+            self._dissolved.add(cluster)
+        self.changed.add(m)
+        return neighbours
+
+    def _link(self, a: Hashable, b: Hashable, weight: float) -> None:
+        self.edges[a][b] = self.edges[b][a] = weight
+        self.changed |= {a, b}
+
+    def _unlink(self, a: Hashable, b: Hashable) -> None:
+        del self.edges[a][b], self.edges[b][a]
+        self.changed |= {a, b}
+
+    def _make_cluster(self, members: set) -> None:
+        name = min(members)
+        self.members[name] = frozenset(members)
+        union: Counter = Counter()
+        for m in members:
+            union.update(self.models[m].graph.elements)
+            if self.cluster_of.get(m) != name:
+                self.changed.add(m)
+            self.cluster_of[m] = name
+        self._union[name] = union
+        for element in union:
+            self._index.setdefault(element, set()).add(name)
+        if len(members) == 1:
+            self.singletons.add(name)
+
+    def _grow_cluster(self, name: Hashable, joined: set) -> None:
+        if not joined:
+            return
+        union = self._union[name]
+        for m in joined:
+            for element in self.models[m].graph.elements:
+                if not union[element]:
+                    self._index.setdefault(element, set()).add(name)
+                union[element] += 1
+            self.cluster_of[m] = name
+            self.changed.add(m)
+        self.members[name] = self.members[name] | joined
+        self.singletons.discard(name)
+
+    def _drop_cluster(self, name: Hashable) -> None:
+        for element in self._union.pop(name):
+            clusters = self._index[element]
+            clusters.discard(name)
+            if not clusters:
+                del self._index[element]
+        del self.members[name]
+        self.singletons.discard(name)

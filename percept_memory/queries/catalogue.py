@@ -1,0 +1,107 @@
+"""Questions to the long-term catalogue (memory/catalogue/): which objects this home has, and
+whether we have seen an observation's object before.
+
+An entry is a cluster of the catalogue's similarity graph, an object learnt: its partial
+models are the views of it (each named by the cluster it was first seen in, the longest look
+first), its names those of the belief objects whose tracks gave the models, and where it is now
+that of the one seen last.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+from bson import ObjectId
+
+from percept_memory.memory import documents as docs
+from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, modalities_consensus
+from percept_memory.memory.catalogue.stage import NO_PIXELS, CatalogueStage
+from percept_memory.memory.catalogue.views import observation_views
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.schema import CATALOGUE, CATALOGUE_TRACKS, OBJECTS
+from percept_memory.memory.store import MemoryStore
+
+OBJECT_FIELDS = {"name": 1, "names": 1, "state": 1, "region": 1, "position": 1, "last_seen": 1}
+VIEWS_SHOWN = 4
+
+
+def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
+            only: list[ObjectId] | None = None) -> list[dict]:
+    """The catalogue's entries (of one map, or these), the most seen first."""
+    match: dict = {} if map_name is None else {"map": map_name}
+    if only is not None:
+        match["entry"] = {"$in": only}
+    groups = list(store.db[CATALOGUE].aggregate([
+        {"$match": match},
+        {"$group": {"_id": {"map": "$map", "entry": "$entry"}, "models": {"$push": {
+            "id": "$_id", "length": "$length", "object": "$object_id"}}}}]))
+    object_ids = list({m["object"] for g in groups for m in g["models"] if m["object"]})
+    objects = {doc["_id"]: doc for doc in store.db[OBJECTS].find(
+        {"_id": {"$in": object_ids}}, OBJECT_FIELDS)}
+    seen = {doc["_id"]: doc["seen"] for doc in store.db[CATALOGUE_TRACKS].find(
+        {"_id": {"$in": object_ids}}, {"seen": 1})}
+    out = [_entry(group, objects, seen) for group in groups]
+    out.sort(key=lambda e: (-e["times_seen"], e["entry"]))
+    return out[:limit]
+
+
+def _entry(group: dict, objects: dict, seen: dict) -> dict:
+    models = sorted(group["models"], key=lambda m: (-m["length"], m["id"]))
+    tracks = list(dict.fromkeys(m["object"] for m in models if m["object"] in objects))
+    names: Counter = Counter()
+    for object_id in tracks:
+        names.update(objects[object_id].get("names") or [objects[object_id].get("name")])
+    last = max(tracks, key=lambda o: objects[o].get("last_seen") or 0, default=None)
+    now = None if last is None else {"object_id": str(last), **{
+        k: objects[last].get(k) for k in ("name", "state", "region", "position", "last_seen")}}
+    return {"entry": str(group["_id"]["entry"]), "map": group["_id"]["map"],
+            "models": len(models), "views": [str(m["id"]) for m in models[:VIEWS_SHOWN]],
+            "names": [name for name, _ in names.most_common() if name],
+            "times_seen": sum(seen.get(o, 0) for o in tracks),
+            "objects": [str(o) for o in tracks], "now": now}
+
+
+def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,
+                stage: CatalogueStage | None = None) -> list[dict]:
+    """The entries an observation may be, best first: `inclusion`, how much of its views the
+    entry holds (Duceux eq. 6.2), and `consensus`, how far its modalities agree that the entry
+    is the best match (eq. 5.12)."""
+    doc = store.clusters.find_one({"_id": cluster_id}, NO_PIXELS)
+    if doc is None:
+        raise NotFound("cluster", str(cluster_id))
+    scene = store.scenes.find_one({"_id": doc["scene_id"]}, {"map": 1}) or {}
+    views = observation_views(docs.decode_cluster(doc, store._blobs([doc])), docs.arrived(doc))
+    graph = GraphOfViews.of_sequence([views])
+    learner = (stage or CatalogueStage(store)).learner(scene.get("map", ""))
+    ranked = learner.classify(graph)[:limit]
+    unions = [learner.union(entry) for entry, _ in ranked]
+    found = {e["entry"]: e for e in entries(store, only=[ObjectId(e) for e, _ in ranked],
+                                            limit=limit)}
+    return [{**found[str(ObjectId(entry))], "inclusion": round(score, 4),
+             "consensus": round(modalities_consensus(graph, union, unions), 4)}
+            for (entry, score), union in zip(ranked, unions, strict=True)
+            if str(ObjectId(entry)) in found]
+
+
+def as_text(entry: dict) -> str:
+    """One line for people: names, how often and how it was seen, where it is now."""
+    now = entry["now"] or {}
+    where = f"{now.get('state') or 'unknown'} at {now.get('region') or 'an unnamed place'}"
+    names = ", ".join(entry["names"][:3]) or "unnamed"
+    return (f"{entry['entry']}  {names}: seen {entry['times_seen']} times, "
+            f"{entry['models']} views; now {where} (object {now.get('object_id')})")
+
+
+def similarity_graph(store: MemoryStore, map_name: str, limit: int = 10_000) -> dict:
+    """The catalogue's similarity graph of one map: its partial models (named by the cluster
+    each began with, with its entry, object and length) and the links kept between them, each
+    once, with their weight (Duceux algorithm 5). The entries are its connected components."""
+    models, links = [], []
+    for doc in store.db[CATALOGUE].find({"map": map_name}, {"elements": 0}).sort(
+            "_id").limit(limit):
+        models.append({"model": str(doc["_id"]), "entry": str(doc["entry"]),
+                       "object_id": str(doc["object_id"]) if doc["object_id"] else None,
+                       "length": doc["length"]})
+        links += [{"a": str(doc["_id"]), "b": str(other), "weight": round(weight, 4)}
+                  for other, weight in doc["edges"] if doc["_id"] < other]
+    return {"map": map_name, "models": models, "links": links}

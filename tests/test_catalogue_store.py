@@ -1,0 +1,146 @@
+"""The catalogue in MongoDB: kept by the memory pipeline, equal when rebuilt from the scenes,
+and asked which objects the home has and whether an observation was seen before."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+import pytest
+
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest.service import memory_pipeline
+from percept_memory.memory.pipeline import request_rebuild
+from percept_memory.memory.schema import CATALOGUE, CATALOGUE_TRACKS
+from percept_memory.queries import catalogue
+
+from .conftest import ingest_consolidated
+
+
+@pytest.fixture(scope="module")
+def week(store):
+    week = kitchen_week.generate(days=2)
+    ingest_consolidated(store, week.scenes)
+    truth = {cluster.id: week.truth.object_at(i, j)
+             for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
+    return week, truth
+
+
+def stored_catalogue(store) -> tuple[list, list]:
+    """The models and tracks, object ids aside (a rebuild makes them afresh; models are named
+    by the stored clusters' ids)."""
+    models = [{k: v for k, v in doc.items() if k != "object_id"}
+              for doc in store.db[CATALOGUE].find().sort("_id")]
+    tracks = sorted(({k: v for k, v in doc.items() if k != "_id"}
+                     for doc in store.db[CATALOGUE_TRACKS].find()), key=lambda d: d["model"])
+    return models, tracks
+
+
+def test_the_catalogue_rebuilt_from_the_scenes_equals_the_one_built_live(store, week):
+    live = stored_catalogue(store)
+    assert live[0] and live[1]
+    request_rebuild(store)
+    memory_pipeline(store).drain(timeout=600)
+    assert stored_catalogue(store) == live
+
+
+def test_the_home_s_objects_are_entries_of_one_kind_of_object_each(store, week):
+    """Two cups of one set look the same: an entry is what an object looks like, so it may hold
+    both (identity keeps them apart by where they are), but never a cup and a plate."""
+    _, truth = week
+    found = catalogue.entries(store, limit=1000)
+    assert found and found == sorted(found, key=lambda e: (-e["times_seen"], e["entry"]))
+    mixed = []
+    for entry in found:
+        real = Counter(truth[view].split("#")[0] for view in map(_object_id, entry["views"]))
+        if len(real) > 1:
+            mixed.append((entry["names"], real))
+        assert entry["now"] is not None and entry["names"] and entry["times_seen"] >= 1
+    assert not mixed
+    assert len({e["entry"] for e in found}) == len(found)
+
+
+def test_an_observation_is_recognised_as_the_entry_holding_its_views(store, week):
+    _, truth = week
+    found = catalogue.entries(store, limit=1000)
+    entry = next(e for e in found if e["models"] > 1) if any(
+        e["models"] > 1 for e in found) else found[0]
+    view = _object_id(entry["views"][0])
+    ranked = catalogue.seen_before(store, view)
+    assert ranked[0]["entry"] == entry["entry"] and ranked[0]["inclusion"] == 1.0
+    assert ranked == sorted(ranked, key=lambda e: -e["inclusion"])
+    assert all(0 <= e["consensus"] <= 1 for e in ranked)
+
+
+def test_the_entries_are_the_connected_components_of_the_similarity_graph(store, week):
+    graph = catalogue.similarity_graph(store, "kitchen-week")
+    entry_of = {m["model"]: m["entry"] for m in graph["models"]}
+    assert graph["links"] and all(entry_of[link["a"]] == entry_of[link["b"]]
+                                  for link in graph["links"])
+    neighbours: dict = {}
+    for link in graph["links"]:
+        neighbours.setdefault(link["a"], set()).add(link["b"])
+        neighbours.setdefault(link["b"], set()).add(link["a"])
+    for model, entry in entry_of.items():  # reached from the model naming its entry
+        seen, todo = {entry}, [entry]
+        while todo:
+            for other in neighbours.get(todo.pop(), ()):
+                if other not in seen:
+                    seen.add(other)
+                    todo.append(other)
+        assert model in seen
+    assert {e["entry"]: e["models"] for e in catalogue.entries(store, limit=1000)} == dict(
+        Counter(entry_of.values()))
+
+
+def test_seen_before_an_unknown_cluster_is_not_found(store):
+    from bson import ObjectId
+
+    from percept_memory.memory.errors import NotFound
+
+    with pytest.raises(NotFound):
+        catalogue.seen_before(store, ObjectId())
+
+
+def _object_id(text: str):
+    from bson import ObjectId
+
+    return ObjectId(text)
+
+
+def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
+    from click.testing import CliRunner
+    from fastapi.testclient import TestClient
+
+    from percept_memory.cli import main
+    from percept_memory.memory.settings import Settings
+    from percept_memory.webui.app import create_app
+
+    from .conftest import LOCAL
+
+    client = TestClient(create_app(store, Settings()), base_url=LOCAL)
+    listed = client.get("/api/catalogue", params={"limit": 3})
+    assert listed.status_code == 200
+    assert listed.json()["entries"] == catalogue.entries(store, limit=3)
+    view = listed.json()["entries"][0]["views"][0]
+    ranked = client.get(f"/api/catalogue/seen-before/{view}").json()["entries"]
+    assert ranked == catalogue.seen_before(store, _object_id(view))
+    graph = client.get("/api/catalogue/graph", params={"map": "kitchen-week"})
+    assert graph.json() == catalogue.similarity_graph(store, "kitchen-week")
+    for bad, status in (("/api/catalogue/graph", 422),
+                        ("/api/catalogue/seen-before/nothex", 422),
+                        (f"/api/catalogue/seen-before/{'0' * 24}", 404),
+                        ("/api/catalogue?limit=0", 422)):
+        answer = client.get(bad)
+        assert answer.status_code == status and "message" in answer.json()["error"]
+
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    shown = CliRunner().invoke(main, ["query", "catalogue", "--limit", "3", "--json"], env=env)
+    assert shown.exit_code == 0, shown.output
+    assert json.loads(shown.stdout) == listed.json()["entries"]
+    text = CliRunner().invoke(main, ["query", "seen-before", view], env=env)
+    assert text.exit_code == 0 and text.stdout.startswith("inclusion 1.00")
+    for args in (["query", "seen-before", "nothex"], ["query", "seen-before", "0" * 24],
+                 ["query", "catalogue", "--map", "nowhere"]):
+        failed = CliRunner().invoke(main, args, env=env)
+        assert failed.exit_code == 1 and failed.output.startswith("Error: "), failed.output

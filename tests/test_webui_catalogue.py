@@ -1,0 +1,68 @@
+"""The catalogue page in a real headless Chromium, on two days of the kitchen week."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import pytest
+import uvicorn
+from playwright.sync_api import sync_playwright
+
+from percept_memory.demo import kitchen_week
+from percept_memory.memory.settings import Settings
+from percept_memory.queries import catalogue
+from percept_memory.webui.app import create_app
+
+from .conftest import ingest_consolidated
+from .test_webui import ALL_LOADED, CHROMIUM, SCREENSHOTS
+
+
+@pytest.fixture(scope="module")
+def url(store):
+    ingest_consolidated(store, kitchen_week.generate(days=2).scenes)
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(store, Settings()), host="127.0.0.1",
+                                           port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(10)
+
+
+def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):
+    entries = catalogue.entries(store)
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=[
+            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking"])
+        tab = browser.new_page(viewport={"width": 1280, "height": 900})
+        blocked: list[str] = []
+        tab.on("console", lambda m: blocked.append(m.text) if "Content Security" in m.text
+               else None)
+        tab.goto(f"{url}/")
+        tab.get_by_role("link", name="Catalogue").click()
+        tab.wait_for_load_state("load")
+        rows = tab.locator("table.catalogue tbody tr")
+        assert rows.count() == len(entries)
+        first = entries[0]
+        row = tab.locator(f"#entry-{first['entry']}")
+        assert row.locator("img.crop").count() == len(first["views"])
+        assert tab.evaluate(ALL_LOADED), "a crop did not decode"
+        assert first["names"][0] in row.inner_text()
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.screenshot(path=str(SCREENSHOTS / "catalogue.png"), full_page=False)
+        row.locator(f"a[href='/objects/{first['now']['object_id']}']").click()
+        tab.wait_for_load_state("load")
+        assert tab.url.endswith(f"/objects/{first['now']['object_id']}")
+        tab.goto(f"{url}/catalogue?map=nowhere")
+        assert "Nothing learnt yet" in tab.locator("table.catalogue").inner_text()
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

@@ -617,11 +617,15 @@ class _Queries(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         from percept_memory.queries.engine import QUERIES
 
-        return [name.replace("_", "-") for name in QUERIES]
+        return [*(name.replace("_", "-") for name in QUERIES), "similar"]
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         from percept_memory.queries.engine import QUERIES
 
+        if cmd_name == "similar":
+            from percept_memory.cli_similar import similar_command
+
+            return similar_command()
         name = cmd_name.replace("-", "_")
         return _query_command(name, QUERIES[name][0]) if name in QUERIES else None
 

@@ -1,0 +1,356 @@
+"""Vector indexes for similarity search ("find more like this"): one approximate-nearest-
+neighbour index per descriptor (the named unit vectors types declare: types/appearance.py),
+kept in a folder beside the database and derived from it (MongoDB is the source of truth).
+
+Why usearch: of the well-kept ANN libraries on PyPI, usearch ships a 2.3 MB wheel for every
+platform, saves and loads (or memory-maps) an index as one file, and removes and adds vectors
+in place. hnswlib has no wheel (PyPI holds its source only: a C++ compiler at install time)
+and filters through a Python callback per candidate; faiss-cpu is an 19 MB wheel whose HNSW
+index cannot remove a vector. Filters need no help from the library: every cluster's time,
+robot, region and map never change once stored, so the index keeps them as numpy arrays (a
+row per cluster) and a filter is a mask over the rows, applied to over-fetched neighbours or,
+when few rows pass, to an exact search over just those rows.
+
+Kept current from a watermark, not a pipeline stage: the folder is local to each process
+(`pmem serve`, `pmem query`) while MongoDB may be shared, so each process's index catches up
+by itself before it answers (`refresh`): it reads the clusters whose ids are newer than the
+newest it holds (less a margin: ids come from the storing clients' clocks) and adds those it
+lacks. When the count of clusters still differs (ids older than the margin, clusters removed)
+it compares every id with MongoDB's and adds or removes the difference. Storing a scene does
+no index work at all; the first query after a burst of ingest pays for it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import shutil
+import threading
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+
+import numpy as np
+from bson import ObjectId
+from usearch.index import Index
+
+from .schema import CLUSTERS, SCENES
+from .settings import Settings
+from .store import MemoryStore
+
+log = logging.getLogger(__name__)
+
+FORMAT = 1  # of the folder's files: another number means rebuild
+MARGIN = timedelta(minutes=5)  # how far behind the newest id a late id may be
+CHUNK = 500  # clusters read and described at a time
+EXACT_ROWS = 4096  # when a filter passes at most this many rows, search them exactly
+SAVE_EVERY = 1000  # rows added or removed since the files were written
+META = ("time", "robot", "region", "map")  # per row; robot, region and map as codes
+COLUMNS = {"live": bool, "time": np.int64, "robot": np.int32, "region": np.int32,
+           "map": np.int32}
+
+
+@dataclass
+class Match:
+    """One cluster found: its id and how alike it is per descriptor (cosine, clipped to
+    0..1), and over all the descriptors both have (their mean)."""
+
+    cluster_id: ObjectId
+    similarity: float
+    descriptors: dict[str, float]
+
+
+@dataclass(frozen=True)
+class RowFilter:
+    """Which clusters may be found: any of these robots, regions and maps, in a time window
+    (nanoseconds, both ends included). Empty means any."""
+
+    robot: Sequence[str] = ()
+    region: Sequence[str] = ()
+    map: Sequence[str] = ()
+    after: int | None = None
+    before: int | None = None
+
+
+class Rows:
+    """The clusters the index knows, one row each, in the order they were added: the row is
+    the key of the cluster's vectors in every descriptor's index. Columns are numpy arrays
+    (grown by doubling), so a filter over a million rows is a few vector operations."""
+
+    def __init__(self, ids: Sequence[ObjectId] = (), columns: Mapping[str, np.ndarray] | None
+                 = None, names: Mapping[str, list] | None = None):
+        self.ids = list(ids)
+        self.row_of = {oid: row for row, oid in enumerate(self.ids)}
+        self.newest = max(self.ids, default=None)
+        self.names = {key: list((names or {}).get(key, [])) for key in META[1:]}
+        self._code_of = {k: {n: i for i, n in enumerate(v)} for k, v in self.names.items()}
+        given = columns or {}
+        self.columns = {key: np.array(given.get(key, []), dtype=dtype)
+                        for key, dtype in COLUMNS.items()}
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def live_count(self) -> int:
+        return int(self.columns["live"][:len(self)].sum())
+
+    def add(self, cluster_id: ObjectId, time: int, values: Mapping[str, str | None]) -> int:
+        row = len(self.ids)
+        if row == len(self.columns["live"]):
+            for key, column in self.columns.items():
+                self.columns[key] = np.resize(column, max(16, 2 * row))
+        self.columns["live"][row] = True
+        self.columns["time"][row] = time
+        for key, codes in self._code_of.items():
+            if values[key] not in codes:
+                codes[values[key]] = len(self.names[key])
+                self.names[key].append(values[key])
+            self.columns[key][row] = codes[values[key]]
+        self.ids.append(cluster_id)
+        self.row_of[cluster_id] = row
+        self.newest = cluster_id if self.newest is None else max(self.newest, cluster_id)
+        return row
+
+    def mask(self, f: RowFilter) -> np.ndarray:
+        """Which rows pass the filter (and are still in the database)."""
+        n = len(self)
+        keep = self.columns["live"][:n].copy()
+        time = self.columns["time"][:n]
+        if f.after is not None:
+            keep &= time >= f.after
+        if f.before is not None:
+            keep &= time <= f.before
+        for key in META[1:]:
+            wanted = getattr(f, key)
+            if wanted:
+                codes = [self._code_of[key][n] for n in wanted if n in self._code_of[key]]
+                keep &= np.isin(self.columns[key][:n], codes)
+        return keep
+
+    def save(self, folder: Path) -> dict:
+        """Write the columns beside the indexes; the rest goes into the state file."""
+        n = len(self)
+        np.savez(folder / "rows.npz", ids=np.array([i.binary for i in self.ids], dtype="S12"),
+                 **{key: column[:n] for key, column in self.columns.items()})
+        return {"names": self.names}
+
+    @classmethod
+    def load(cls, folder: Path, state: dict) -> Rows:
+        with np.load(folder / "rows.npz") as data:
+            return cls([ObjectId(bytes(i)) for i in data["ids"]],
+                       {key: data[key] for key in COLUMNS}, state["names"])
+
+
+class SimilarityIndex:
+    """The descriptor indexes of one database, in `folder`. Thread-safe."""
+
+    def __init__(self, store: MemoryStore, folder: Path):
+        self.store = store
+        self.folder = folder
+        self.lock = threading.RLock()
+        self.rows = Rows()
+        self.indexes: dict[str, Index] = {}
+        self.unsaved = 0
+        self._loaded = False
+
+    @classmethod
+    def of(cls, store: MemoryStore, settings: Settings) -> SimilarityIndex:
+        """The index of the settings' database, under the data directory."""
+        return cls(store, Path(settings.data_dir) / "similarity" / settings.db)
+
+    # --- keeping it current ----------------------------------------------------------------
+
+    def refresh(self) -> int:
+        """Catch up with MongoDB (see the module's docstring): returns the rows changed."""
+        with self.lock:
+            if not self._loaded:
+                self._load()
+            changed = self._add(self._recent_unknown())
+            clusters = self.store.db[CLUSTERS].estimated_document_count()
+            if clusters != self.rows.live_count():
+                changed += self._reconcile()
+            self.unsaved += changed
+            if self.unsaved >= SAVE_EVERY or (self.unsaved and not self._saved_once()):
+                self.save()
+            return changed
+
+    def rebuild(self) -> int:
+        """Forget the folder and index every cluster again: returns the rows."""
+        with self.lock:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            self.rows, self.indexes, self._loaded = Rows(), {}, True
+            self.unsaved = self._add(self._ids({}))
+            self.save()
+            return len(self.rows.ids)
+
+    def _recent_unknown(self) -> list[ObjectId]:
+        newest = self.rows.newest
+        query = {} if newest is None else {"_id": {"$gte": ObjectId.from_datetime(
+            newest.generation_time - MARGIN)}}
+        return [i for i in self._ids(query) if i not in self.rows.row_of]
+
+    def _ids(self, query: dict) -> list[ObjectId]:
+        return [d["_id"] for d in self.store.db[CLUSTERS].find(query, {"_id": 1}).sort("_id")]
+
+    def _reconcile(self) -> int:
+        stored = set(self._ids({}))
+        live = self.rows.columns["live"]
+        gone = [row for row, oid in enumerate(self.rows.ids) if live[row] and oid not in stored]
+        for row in gone:
+            live[row] = False
+            for index in self.indexes.values():
+                if row in index:
+                    index.remove(row)
+        missing = sorted(stored - self.rows.row_of.keys())
+        log.info("similarity: %d clusters missing from the index, %d gone", len(missing),
+                 len(gone))
+        return len(gone) + self._add(missing)
+
+    def _add(self, cluster_ids: Sequence[ObjectId]) -> int:
+        for start in range(0, len(cluster_ids), CHUNK):
+            chunk = cluster_ids[start:start + CHUNK]
+            clusters = self.store.get_clusters(chunk)
+            meta = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
+                {"_id": {"$in": list(chunk)}},
+                {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
+            maps = {d["_id"]: d.get("map") for d in self.store.db[SCENES].find(
+                {"_id": {"$in": [d.get("scene_id") for d in meta.values()]}}, {"map": 1})}
+            vectors: dict[str, tuple[list[int], list[np.ndarray]]] = {}
+            for cluster_id, cluster in clusters.items():
+                doc = meta[cluster_id]
+                search = doc.get("search", {})
+                row = self.rows.add(cluster_id, search.get("time", 0), {
+                    "robot": search.get("robot"), "region": search.get("region"),
+                    "map": maps.get(doc.get("scene_id"))})
+                for name, vector in cluster.descriptors().items():
+                    if np.all(np.isfinite(vector)):
+                        keys, stack = vectors.setdefault(name, ([], []))
+                        keys.append(row)
+                        stack.append(vector.astype(np.float32))
+            for name, (keys, stack) in vectors.items():
+                self._index(name, stack[0].size).add(np.array(keys, np.uint64), np.stack(stack))
+        return len(cluster_ids)
+
+    def _index(self, name: str, ndim: int) -> Index:
+        if name not in self.indexes:
+            self.indexes[name] = Index(ndim=ndim, metric="ip", dtype="f32")
+        return self.indexes[name]
+
+    # --- files -----------------------------------------------------------------------------
+
+    def _state_path(self) -> Path:
+        return self.folder / "rows.json"
+
+    def _saved_once(self) -> bool:
+        return self._state_path().exists()
+
+    def save(self) -> None:
+        """Write the indexes and rows (the rows last: they say which index files are whole)."""
+        with self.lock:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            files = {}
+            for name, index in self.indexes.items():
+                files[name] = _file_name(name)
+                index.save(str(self.folder / files[name]))
+            state = {"format": FORMAT, "files": files, "rows": self.rows.save(self.folder)}
+            temporary = self._state_path().with_suffix(".tmp")
+            temporary.write_text(json.dumps(state))
+            temporary.replace(self._state_path())
+            self.unsaved = 0
+
+    def _load(self) -> None:
+        self._loaded = True
+        try:
+            state = json.loads(self._state_path().read_text())
+            if state.get("format") != FORMAT:
+                raise ValueError(f"format {state.get('format')}, not {FORMAT}")
+            rows = Rows.load(self.folder, state["rows"])
+            indexes = {name: Index.restore(str(self.folder / file))
+                       for name, file in state["files"].items()}
+            if any(index is None for index in indexes.values()):
+                raise ValueError("an index file is missing")
+        except FileNotFoundError:
+            return
+        except (ValueError, KeyError, TypeError, RuntimeError) as error:
+            log.warning("similarity: the index in %s is not usable (%s): rebuilding it",
+                        self.folder, error)
+            return
+        self.rows, self.indexes = rows, indexes
+
+    # --- searching -------------------------------------------------------------------------
+
+    def descriptors_of(self, cluster_id: ObjectId) -> dict[str, np.ndarray]:
+        """The stored vectors of an indexed cluster (empty when it is not indexed)."""
+        with self.lock:
+            row = self.rows.row_of.get(cluster_id)
+            if row is None:
+                return {}
+            return {name: index[row] for name, index in self.indexes.items() if row in index}
+
+    def names(self) -> list[str]:
+        with self.lock:
+            return sorted(self.indexes)
+
+    def search(self, query: Mapping[str, np.ndarray], k: int, where: RowFilter = RowFilter(),
+               exclude: Iterable[ObjectId] = ()) -> list[Match]:
+        """The k clusters most alike the query's descriptors (those the index has), best
+        first, among those the filter lets through."""
+        with self.lock:
+            allowed = self.rows.mask(where)
+            for oid in exclude:
+                if oid in self.rows.row_of:
+                    allowed[self.rows.row_of[oid]] = False
+            wanted = {name: np.asarray(v, np.float32) for name, v in query.items()
+                      if name in self.indexes and self.indexes[name].ndim == np.size(v)}
+            candidates: set[int] = set()
+            for name, vector in wanted.items():
+                candidates |= self._nearest(self.indexes[name], vector, 2 * k, allowed)
+            return self._ranked(wanted, sorted(candidates), k)
+
+    def _nearest(self, index: Index, vector: np.ndarray, count: int, allowed: np.ndarray
+                 ) -> set[int]:
+        """The `count` allowed rows nearest the vector: exactly among few allowed rows, else
+        from ever more neighbours until enough of them are allowed."""
+        passing = np.flatnonzero(allowed)
+        if len(passing) <= EXACT_ROWS:
+            rows = passing[index.contains(passing.astype(np.uint64))]
+            if not len(rows):
+                return set()
+            scores = np.stack(index.get(rows.astype(np.uint64))) @ vector
+            return set(rows[np.argsort(-scores)[:count]].tolist())
+        fetch = int(count * len(allowed) / len(passing) * 2)
+        while True:
+            keys = index.search(vector, min(fetch, len(index))).keys.astype(np.int64)
+            kept = keys[allowed[keys]]
+            if len(kept) >= count or fetch >= len(index):
+                return set(kept[:count].tolist())
+            fetch *= 4
+
+    def _ranked(self, query: Mapping[str, np.ndarray], rows: list[int], k: int) -> list[Match]:
+        if not rows:
+            return []
+        keys = np.array(rows, np.uint64)
+        scores = {}
+        for name, vector in query.items():
+            index = self.indexes[name]
+            present = index.contains(keys)
+            score = np.full(len(rows), np.nan)
+            if present.any():
+                score[present] = np.clip(np.stack(index.get(keys[present])) @ vector, 0, 1)
+            scores[name] = score
+        table = np.array(list(scores.values()))
+        combined = np.nanmean(table, axis=0)
+        order = np.argsort(-combined, kind="stable")[:k]
+        return [Match(self.rows.ids[rows[i]], round(float(combined[i]), 4),
+                      {name: round(float(s[i]), 4) for name, s in scores.items()
+                       if not np.isnan(s[i])})
+                for i in order]
+
+
+def _file_name(descriptor: str) -> str:
+    """A file name for a descriptor's index (names come from types: any characters)."""
+    return f"{re.sub(r'[^A-Za-z0-9_.-]', '_', descriptor)}-{zlib.crc32(descriptor.encode())}" \
+        ".usearch"

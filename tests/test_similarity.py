@@ -5,13 +5,20 @@ from __future__ import annotations
 
 import base64
 import json
+import re
+import socket
+import threading
+import time
+from collections import Counter
 
 import cv2
 import numpy as np
 import pytest
+import uvicorn
 from bson import ObjectId
 from click.testing import CliRunner
 from fastapi.testclient import TestClient
+from playwright.sync_api import expect
 
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
@@ -25,6 +32,7 @@ from percept_memory.queries.similar import Similarity
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated
+from .test_webui import browser, images_decode, page, shot  # noqa: F401 (fixtures)
 
 
 @pytest.fixture(scope="module")
@@ -244,3 +252,47 @@ def test_pmem_query_similar(settings, day, mongo_uri, db_name, tmp_path):
     assert nothing.exit_code == 1 and nothing.stderr.startswith("Error: nothing else")
     bad = CliRunner().invoke(main, ["query", "similar"], env=env)
     assert bad.exit_code == 1 and "one of cluster, object or image" in bad.stderr
+
+
+@pytest.fixture(scope="module")
+def url(store, day, settings):
+    """A real uvicorn server on a free loopback port, in a thread."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(create_app(store, settings), host="127.0.0.1",
+                                           port=port, log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(10)
+
+
+def test_more_like_this_shows_ranked_crops(page, url, day):  # noqa: F811 (page: a fixture)
+    """From a cluster's page, "more like this" lists crops best first with their similarity;
+    each leads on to more like it."""
+    item = day[1]
+    (often, _), = Counter(item.values()).most_common(1)
+    start = next(c for c, key in item.items() if key == often)
+    page.goto(f"{url}/clusters/{start}")
+    page.get_by_role("link", name="more like this").click()
+    expect(page).to_have_url(f"{url}/similar?cluster={start}")
+    hits = page.locator("ol.similar li.hit")
+    expect(hits).to_have_count(10)
+    images_decode(page)
+    shown = [float(s) for s in hits.locator(".similarity").all_inner_texts()]
+    assert shown == sorted(shown, reverse=True) and shown[0] > 0.5
+    found = [ObjectId(i) for i in hits.evaluate_all("els => els.map(e => e.dataset.cluster)")]
+    assert all(item[i] == often for i in found[:3])
+    shot(page, "similar")
+    hits.nth(1).get_by_role("link", name="more like this").click()
+    expect(page).to_have_url(re.compile(rf"/similar\?cluster={found[1]}"))
+    expect(page.locator("ol.similar li.hit")).to_have_count(10)
+
+    page.goto(f"{url}/similar?cluster={start}&k=500")
+    expect(page.locator("main")).to_contain_text("less than or equal to 100")

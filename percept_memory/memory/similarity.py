@@ -32,6 +32,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
+from zipfile import BadZipFile
 
 import numpy as np
 from bson import ObjectId
@@ -133,14 +134,15 @@ class Rows:
     def save(self, folder: Path) -> dict:
         """Write the columns beside the indexes; the rest goes into the state file."""
         n = len(self)
-        np.savez(folder / "rows.npz", ids=np.array([i.binary for i in self.ids], dtype="S12"),
+        ids = np.frombuffer(b"".join(i.binary for i in self.ids), np.uint8).reshape(-1, 12)
+        np.savez(folder / "rows.npz", ids=ids,
                  **{key: column[:n] for key, column in self.columns.items()})
         return {"names": self.names}
 
     @classmethod
     def load(cls, folder: Path, state: dict) -> Rows:
         with np.load(folder / "rows.npz") as data:
-            return cls([ObjectId(bytes(i)) for i in data["ids"]],
+            return cls([ObjectId(row.tobytes()) for row in data["ids"]],
                        {key: data[key] for key in COLUMNS}, state["names"])
 
 
@@ -274,7 +276,7 @@ class SimilarityIndex:
                 raise ValueError("an index file is missing")
         except FileNotFoundError:
             return
-        except (ValueError, KeyError, TypeError, RuntimeError) as error:
+        except (ValueError, KeyError, TypeError, RuntimeError, OSError, BadZipFile) as error:
             log.warning("similarity: the index in %s is not usable (%s): rebuilding it",
                         self.folder, error)
             return

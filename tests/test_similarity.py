@@ -32,7 +32,7 @@ from percept_memory.queries.similar import Similarity
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated
-from .test_webui import browser, images_decode, page, shot  # noqa: F401 (fixtures)
+from .test_webui import ALL_LOADED, browser, page, shot  # noqa: F401 (fixtures)
 
 
 @pytest.fixture(scope="module")
@@ -284,7 +284,10 @@ def test_more_like_this_shows_ranked_crops(page, url, day):  # noqa: F811 (page:
     expect(page).to_have_url(f"{url}/similar?cluster={start}")
     hits = page.locator("ol.similar li.hit")
     expect(hits).to_have_count(10)
-    images_decode(page)
+    deadline = time.monotonic() + 10  # every crop decodes (lazy ones load after `load`)
+    while not page.evaluate(ALL_LOADED):
+        assert time.monotonic() < deadline, "a crop did not decode"
+        page.wait_for_timeout(50)
     shown = [float(s) for s in hits.locator(".similarity").all_inner_texts()]
     assert shown == sorted(shown, reverse=True) and shown[0] > 0.5
     found = [ObjectId(i) for i in hits.evaluate_all("els => els.map(e => e.dataset.cluster)")]

@@ -45,7 +45,11 @@ from .store import MemoryStore
 log = logging.getLogger(__name__)
 
 FORMAT = 1  # of the folder's files: another number means rebuild
-MARGIN = timedelta(minutes=5)  # how far behind the newest id a late id may be
+# How far behind the newest id indexed a cluster may still appear (ids come from the clock of
+# the client that stored it, before its transaction commits). Later ones are found by the
+# count check; a wider margin costs every refresh the ids stored in it.
+MARGIN = timedelta(seconds=10)
+EXPANSION_SEARCH = 128  # usearch's default 64 finds half the true 10 nearest of random data
 CHUNK = 500  # clusters read and described at a time
 EXACT_ROWS = 4096  # when a filter passes at most this many rows, search them exactly
 SAVE_EVERY = 1000  # rows added or removed since the files were written
@@ -62,6 +66,18 @@ class Match:
     cluster_id: ObjectId
     similarity: float
     descriptors: dict[str, float]
+
+
+@dataclass
+class Entry:
+    """A cluster to index: what filters read of it, and its descriptors."""
+
+    cluster_id: ObjectId
+    time: int
+    robot: str | None
+    region: str | None
+    map: str | None
+    descriptors: Mapping[str, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -169,7 +185,7 @@ class SimilarityIndex:
         """Catch up with MongoDB (see the module's docstring): returns the rows changed."""
         with self.lock:
             if not self._loaded:
-                self._load()
+                self.load()
             changed = self._add(self._recent_unknown())
             clusters = self.store.db[CLUSTERS].estimated_document_count()
             if clusters != self.rows.live_count():
@@ -212,6 +228,7 @@ class SimilarityIndex:
         return len(gone) + self._add(missing)
 
     def _add(self, cluster_ids: Sequence[ObjectId]) -> int:
+        """Read and describe these clusters, a chunk at a time, and add them."""
         for start in range(0, len(cluster_ids), CHUNK):
             chunk = cluster_ids[start:start + CHUNK]
             clusters = self.store.get_clusters(chunk)
@@ -220,25 +237,34 @@ class SimilarityIndex:
                 {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
             maps = {d["_id"]: d.get("map") for d in self.store.db[SCENES].find(
                 {"_id": {"$in": [d.get("scene_id") for d in meta.values()]}}, {"map": 1})}
+            self.add(Entry(cluster_id, search.get("time", 0), search.get("robot"),
+                           search.get("region"), maps.get(meta[cluster_id].get("scene_id")),
+                           cluster.descriptors())
+                     for cluster_id, cluster in clusters.items()
+                     for search in [meta[cluster_id].get("search", {})])
+        return len(cluster_ids)
+
+    def add(self, entries: Iterable[Entry]) -> None:
+        """Add clusters with their descriptors (non-finite vectors are left out)."""
+        with self.lock:
+            self._loaded = True
             vectors: dict[str, tuple[list[int], list[np.ndarray]]] = {}
-            for cluster_id, cluster in clusters.items():
-                doc = meta[cluster_id]
-                search = doc.get("search", {})
-                row = self.rows.add(cluster_id, search.get("time", 0), {
-                    "robot": search.get("robot"), "region": search.get("region"),
-                    "map": maps.get(doc.get("scene_id"))})
-                for name, vector in cluster.descriptors().items():
+            for entry in entries:
+                row = self.rows.add(entry.cluster_id, entry.time, {
+                    "robot": entry.robot, "region": entry.region, "map": entry.map})
+                for name, vector in entry.descriptors.items():
                     if np.all(np.isfinite(vector)):
                         keys, stack = vectors.setdefault(name, ([], []))
                         keys.append(row)
-                        stack.append(vector.astype(np.float32))
+                        stack.append(vector)
             for name, (keys, stack) in vectors.items():
-                self._index(name, stack[0].size).add(np.array(keys, np.uint64), np.stack(stack))
-        return len(cluster_ids)
+                self._index(name, stack[0].size).add(np.array(keys, np.uint64),
+                                                     np.stack(stack).astype(np.float32))
 
     def _index(self, name: str, ndim: int) -> Index:
         if name not in self.indexes:
-            self.indexes[name] = Index(ndim=ndim, metric="ip", dtype="f32")
+            self.indexes[name] = Index(ndim=ndim, metric="ip", dtype="f32",
+                                       expansion_search=EXPANSION_SEARCH)
         return self.indexes[name]
 
     # --- files -----------------------------------------------------------------------------
@@ -263,7 +289,8 @@ class SimilarityIndex:
             temporary.replace(self._state_path())
             self.unsaved = 0
 
-    def _load(self) -> None:
+    def load(self) -> None:
+        """Read the folder's files, if they are whole and of this format."""
         self._loaded = True
         try:
             state = json.loads(self._state_path().read_text())
@@ -274,6 +301,8 @@ class SimilarityIndex:
                        for name, file in state["files"].items()}
             if any(index is None for index in indexes.values()):
                 raise ValueError("an index file is missing")
+            for index in indexes.values():
+                index.expansion_search = EXPANSION_SEARCH
         except FileNotFoundError:
             return
         except (ValueError, KeyError, TypeError, RuntimeError, OSError, BadZipFile) as error:

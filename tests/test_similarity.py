@@ -188,6 +188,9 @@ def test_the_api_finds_more_like_a_cluster_an_object_and_an_image(client, store,
     cluster = store.get_cluster(start)
     by_object = client.get("/api/similar", params={"object": str(cluster.object_id)})
     assert by_object.status_code == 200 and by_object.json()["items"]
+    by_name = client.get("/api/similar", params={"object": "ketchup", "k": 3}).json()
+    assert item[ObjectId(by_name["start"])] == "ketchup"
+    assert [item[ObjectId(h["id"])] for h in by_name["items"]] == ["ketchup"] * 3
 
     pixels, _ = kitchen_week.crop("ketchup", "front", np.random.default_rng(5))
     uploaded = client.post("/api/similar", json={"image": _png(pixels), "k": 3})
@@ -199,6 +202,7 @@ def test_the_api_finds_more_like_a_cluster_an_object_and_an_image(client, store,
 @pytest.mark.parametrize(("method", "request_args", "status", "words"), [
     ("get", {"params": {"cluster": "65e5a0c0e4b0a1b2c3d4e5f6"}}, 404, "cluster"),
     ("get", {"params": {"object": "65e5a0c0e4b0a1b2c3d4e5f6"}}, 404, "object"),
+    ("get", {"params": {"object": "unicorn"}}, 404, "unicorn"),
     ("get", {"params": {}}, 422, "one of cluster, object or image"),
     ("get", {"params": {"cluster": "nope"}}, 422, "not valid"),
     ("get", {"params": {"cluster": "65e5a0c0e4b0a1b2c3d4e5f6", "k": "0"}}, 422, "not valid"),

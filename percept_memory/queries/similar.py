@@ -1,10 +1,11 @@
 """Find more like this: the observations that look most like a cluster, an object or an image.
 
-The query names what to start from (a cluster, an object: its latest observation, or an
-uploaded PNG/JPEG crop) and what may be found (robots, regions, maps, a time window); the
-answer ranks clusters by their mean similarity over the descriptors both sides have (each a
-cosine of unit vectors, memory/types/appearance.py), with each descriptor's own. The vector
-search is memory/similarity.py's index, brought up to date with MongoDB before each answer.
+The query names what to start from (a cluster, an object by id or name: its latest
+observation, or an uploaded PNG/JPEG crop) and what may be found (robots, regions, maps, a
+time window); the answer ranks clusters by their mean similarity over the descriptors both
+sides have (each a cosine of unit vectors, memory/types/appearance.py), with each
+descriptor's own. The vector search is memory/similarity.py's index, brought up to date with
+MongoDB before each answer.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pydantic import BaseModel, BeforeValidator, Field, StringConstraints, model
 from percept_memory.converters import ConversionError
 from percept_memory.converters.images import decode_file
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.schema import CLUSTERS, OBJECTS
+from percept_memory.memory.schema import CLUSTERS
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
 from percept_memory.memory.store import MemoryStore
@@ -26,7 +27,8 @@ from percept_memory.memory.types import Id
 from percept_memory.memory.types.appearance import crop_descriptors, hash_bits, perceptual_hash
 
 from .clusters import HIT_FIELDS
-from .model import MAX_LIST, Name, Strict, Time, listed
+from .engine import QueryEngine
+from .model import MAX_LIST, Name, Strict, Subject, Time, listed
 from .ops import QueryError
 from .results import ClusterHit
 
@@ -41,7 +43,8 @@ class SimilarQuery(Strict):
     """What to start from (one of cluster, object, image), how many to find, and where."""
 
     cluster: Id | None = Field(default=None, description="a cluster (observation) id")
-    object: Id | None = Field(default=None, description="an object id: its latest observation")
+    object: Subject | None = Field(default=None, description=(
+        "an object (its latest observation): its id, or text naming it as where-is reads it"))
     image: Annotated[str, StringConstraints(max_length=(MAX_IMAGE_BYTES + 2) // 3 * 4)] | None \
         = Field(default=None, description="a PNG or JPEG crop, base64 (JSON body only)")
     k: Annotated[int, Field(ge=1, le=MAX_SIMILAR)] = Field(default=10,
@@ -114,10 +117,10 @@ class Similarity:
             return "image", image_descriptors(query.image)
         cluster_id = query.cluster
         if query.object is not None:
-            found = self.store.db[OBJECTS].find_one({"_id": query.object}, {"last_cluster": 1})
-            if found is None:
+            seen = QueryEngine(self.store).last_seen(query.object, limit=1)
+            if not seen:
                 raise NotFound("object", query.object)
-            cluster_id = found.get("last_cluster")
+            cluster_id = seen[0].cluster_id
         if self.store.db[CLUSTERS].find_one({"_id": cluster_id}, {"_id": 1}) is None:
             raise NotFound("cluster", cluster_id)
         return cluster_id, self.index.descriptors_of(cluster_id)

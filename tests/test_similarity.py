@@ -23,7 +23,7 @@ from playwright.sync_api import expect
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
 from percept_memory.memory import similarity
-from percept_memory.memory.schema import CLUSTERS
+from percept_memory.memory.schema import CLUSTERS, OUTBOX, SCENES
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
 from percept_memory.memory.types import ColorHistogram, FeatureVector, ImageROI
@@ -100,15 +100,25 @@ def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path):
                for n, v in index.descriptors_of(some).items())
 
     newer = kitchen_week.generate(days=1, seed=7).scenes[:2]
-    ids = [c for s in store.put_scenes(newer) for c in s.cluster_ids]
+    stored = store.put_scenes(newer)
+    ids = [c for s in stored for c in s.cluster_ids]
     assert again.refresh() == len(ids)
     assert again.descriptors_of(ids[0])
 
+    removed = list(store.db[CLUSTERS].find({"_id": {"$in": ids}}))
     store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})  # gone from the source of truth
     assert again.refresh() == len(ids)
     found = again.search(again.descriptors_of(some), 1000)
     assert len(found) == store.db[CLUSTERS].count_documents({})
     assert not {m.cluster_id for m in found} & set(ids)
+
+    store.db[CLUSTERS].insert_many(removed)  # and back again
+    assert again.refresh() == len(ids)
+    assert again.refresh() == 0
+    assert set(ids) <= {m.cluster_id for m in again.search(again.descriptors_of(some), 1000)}
+    for collection in (SCENES, OUTBOX):  # the other tests know the day's scenes only
+        store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
+    store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
 
 
 def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_path):

@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import logging
 import re
-import shutil
 import threading
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
@@ -111,6 +110,12 @@ class Rows:
     def __len__(self) -> int:
         return len(self.ids)
 
+    def holds(self, cluster_id: ObjectId) -> bool:
+        """Whether the cluster has a row still in the database (one removed and stored again
+        gets a new row)."""
+        row = self.row_of.get(cluster_id)
+        return row is not None and bool(self.columns["live"][row])
+
     def live_count(self) -> int:
         return int(self.columns["live"][:len(self)].sum())
 
@@ -195,20 +200,11 @@ class SimilarityIndex:
                 self.save()
             return changed
 
-    def rebuild(self) -> int:
-        """Forget the folder and index every cluster again: returns the rows."""
-        with self.lock:
-            shutil.rmtree(self.folder, ignore_errors=True)
-            self.rows, self.indexes, self._loaded = Rows(), {}, True
-            self.unsaved = self._add(self._ids({}))
-            self.save()
-            return len(self.rows.ids)
-
     def _recent_unknown(self) -> list[ObjectId]:
         newest = self.rows.newest
         query = {} if newest is None else {"_id": {"$gte": ObjectId.from_datetime(
             newest.generation_time - MARGIN)}}
-        return [i for i in self._ids(query) if i not in self.rows.row_of]
+        return [i for i in self._ids(query) if not self.rows.holds(i)]
 
     def _ids(self, query: dict) -> list[ObjectId]:
         return [d["_id"] for d in self.store.db[CLUSTERS].find(query, {"_id": 1}).sort("_id")]
@@ -222,7 +218,7 @@ class SimilarityIndex:
             for index in self.indexes.values():
                 if row in index:
                     index.remove(row)
-        missing = sorted(stored - self.rows.row_of.keys())
+        missing = sorted(i for i in stored if not self.rows.holds(i))
         log.info("similarity: %d clusters missing from the index, %d gone", len(missing),
                  len(gone))
         return len(gone) + self._add(missing)

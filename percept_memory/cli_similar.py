@@ -44,7 +44,9 @@ def similar_command() -> click.Command:
                              help="a PNG or JPEG crop to start from"),
                 click.Option(["--json", "as_json"], is_flag=True,
                              help="print the answer as JSON (times as ISO 8601 and in ns)")],
-        help="The observations that look most like a cluster, an object (its latest "
-             "observation) or an image, best first, with their similarity.",
-        epilog=example("pmem query similar --cluster 65e5a0c0e4b0a1b2c3d4e5f6 --region table",
-                       "pmem query similar --image cup.png --k 5 --json"))
+        help="The observations that look most like a cluster, an object (by id or name: its "
+             "latest observation) or an image, best first, with their similarity. Nothing "
+             "found is an error.",
+        epilog=example("pmem query similar --object ketchup --region counter_top_sink",
+                       "pmem query similar --cluster 65e5a0c0e4b0a1b2c3d4e5f6 --k 5 --json",
+                       "pmem query similar --image cup.png --descriptor crop-hog"))

@@ -237,6 +237,14 @@ def test_an_image_too_large_is_refused_from_its_header(client):
     assert answer.status_code == 422 and "over the limit" in answer.json()["error"]["message"]
 
 
+def test_search_results_lead_to_more_like_each(client, day):
+    found = client.get("/search", params={"text": "ketchup"})
+    assert found.status_code == 200
+    linked = re.findall(r'href="/similar\?cluster=([0-9a-f]{24})"', found.text)
+    assert linked and linked == re.findall(r'data-cluster="([0-9a-f]{24})"', found.text)
+    assert client.get(f"/similar?cluster={linked[0]}").status_code == 200
+
+
 def test_a_filter_on_an_unknown_descriptor_names_those_there_are(client, day):
     answer = client.get("/api/similar", params={"cluster": str(next(iter(day[1]))),
                                                 "descriptor": "colour"})

@@ -5,11 +5,13 @@ kept in a folder beside the database and derived from it (MongoDB is the source 
 Why usearch: of the well-kept ANN libraries on PyPI, usearch ships a 2.3 MB wheel for every
 platform, saves and loads (or memory-maps) an index as one file, and removes and adds vectors
 in place. hnswlib has no wheel (PyPI holds its source only: a C++ compiler at install time)
-and filters through a Python callback per candidate; faiss-cpu is an 19 MB wheel whose HNSW
+and filters through a Python callback per candidate; faiss-cpu is a 19 MB wheel whose HNSW
 index cannot remove a vector. Filters need no help from the library: every cluster's time,
 robot, region and map never change once stored, so the index keeps them as numpy arrays (a
-row per cluster) and a filter is a mask over the rows, applied to over-fetched neighbours or,
-when few rows pass, to an exact search over just those rows.
+row per cluster) and a filter is a mask over the rows. When at most EXACT_ROWS pass, those
+rows are searched exactly, from the vectors kept a second time as a matrix by row (memory
+for speed: a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the
+graph's neighbours are over-fetched and masked.
 
 Kept current from a watermark, not a pipeline stage: the folder is local to each process
 (`pmem serve`, `pmem query`) while MongoDB may be shared, so each process's index catches up

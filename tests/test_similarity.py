@@ -131,6 +131,17 @@ def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_pa
         file.write_bytes(b"not an index")
     assert SimilarityIndex(store, folder).refresh() == store.db[CLUSTERS].count_documents({})
 
+    rows = (folder / "rows.npz").read_bytes()
+    grown = SimilarityIndex(store, folder)
+    grown.refresh()
+    stored = store.put_scenes(kitchen_week.generate(days=1, seed=8).scenes[:1])
+    grown.refresh()
+    grown.save()
+    (folder / "rows.npz").write_bytes(rows)  # as if the save had stopped before the rows
+    assert SimilarityIndex(store, folder).refresh() == store.db[CLUSTERS].count_documents({})
+    for collection, key in ((CLUSTERS, "scene_id"), (SCENES, "_id"), (OUTBOX, "_id")):
+        store.db[collection].delete_many({key: stored[0].scene_id})
+
 
 @pytest.mark.parametrize("exact_rows", [similarity.EXACT_ROWS, 0])
 def test_filters_hold_whether_searched_exactly_or_approximately(store, day, tmp_path,

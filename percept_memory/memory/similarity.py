@@ -155,19 +155,18 @@ class Rows:
                 keep &= chosen[self.columns[key][:n]]
         return keep
 
-    def save(self, folder: Path) -> dict:
-        """Write the columns beside the indexes; the rest goes into the state file."""
+    def save(self, folder: Path) -> None:
+        """Write the rows in one file (ids, columns and the names the codes stand for)."""
         n = len(self)
         ids = np.frombuffer(b"".join(i.binary for i in self.ids), np.uint8).reshape(-1, 12)
-        np.savez(folder / "rows.npz", ids=ids,
+        np.savez(folder / "rows.npz", ids=ids, names=np.array(json.dumps(self.names)),
                  **{key: column[:n] for key, column in self.columns.items()})
-        return {"names": self.names}
 
     @classmethod
-    def load(cls, folder: Path, state: dict) -> Rows:
+    def load(cls, folder: Path) -> Rows:
         with np.load(folder / "rows.npz") as data:
             return cls([ObjectId(row.tobytes()) for row in data["ids"]],
-                       {key: data[key] for key in COLUMNS}, state["names"])
+                       {key: data[key] for key in COLUMNS}, json.loads(str(data["names"])))
 
 
 class Vectors:
@@ -332,12 +331,14 @@ class SimilarityIndex:
         return self._state_path().exists()
 
     def save(self) -> None:
-        """Write the vectors and rows (the state file last: it says which files are whole)."""
+        """Write the vectors, then the rows, then the state file naming the vectors' files
+        (load checks that no vectors belong to rows that were not written)."""
         with self.lock:
             self.folder.mkdir(parents=True, exist_ok=True)
             files = {name: vectors.save(self.folder, name) for name, vectors in
                      self.vectors.items()}
-            state = {"format": FORMAT, "files": files, "rows": self.rows.save(self.folder)}
+            self.rows.save(self.folder)
+            state = {"format": FORMAT, "files": files}
             temporary = self._state_path().with_suffix(".tmp")
             temporary.write_text(json.dumps(state))
             temporary.replace(self._state_path())
@@ -350,9 +351,11 @@ class SimilarityIndex:
             state = json.loads(self._state_path().read_text())
             if state.get("format") != FORMAT:
                 raise ValueError(f"format {state.get('format')}, not {FORMAT}")
-            rows = Rows.load(self.folder, state["rows"])
+            rows = Rows.load(self.folder)
             vectors = {name: Vectors.load(self.folder, base)
                        for name, base in state["files"].items()}
+            if any(len(v.present) > len(rows) for v in vectors.values()):
+                raise ValueError("a save did not finish (vectors of rows not written)")
         except FileNotFoundError:
             return
         except (ValueError, KeyError, TypeError, RuntimeError, OSError, BadZipFile) as error:

@@ -20,6 +20,7 @@ from percept_memory.queries.results import Moment
 
 COLUMNS = {  # what a table of each kind of row shows, in order
     "ClusterHit": ("id", "time", "robot", "region", "position", "labels", "score", "distance"),
+    "SimilarHit": ("id", "similarity", "time", "robot", "region", "labels", "object_id"),
     "Belief": ("name", "state", "map", "region", "position", "last_seen", "confidence",
                "match", "object_id"),
     "Sighting": ("name", "state", "time", "region", "position", "robot", "cluster_id"),

@@ -676,11 +676,16 @@ class _Queries(click.Group):
     def list_commands(self, ctx: click.Context) -> list[str]:
         from percept_memory.queries.engine import QUERIES
 
-        return [name.replace("_", "-") for name in QUERIES] + super().list_commands(ctx)
+        return [*(name.replace("_", "-") for name in QUERIES), "similar",
+                *super().list_commands(ctx)]
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         from percept_memory.queries.engine import QUERIES
 
+        if cmd_name == "similar":
+            from percept_memory.cli_similar import similar_command
+
+            return similar_command()
         name = cmd_name.replace("-", "_")
         if name in QUERIES:
             return _query_command(name, QUERIES[name][0])

@@ -28,6 +28,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("queries.py", ["--clusters", "3000", "--samples", "3"], {"queries"}),
     ("export.py", ["--clusters", "300", "--sizes", "100,300", "--formats", "imagefolder"],
      {"exports"}),
+    ("similarity.py", ["--days", "1", "--every", "10", "--vectors", "3000", "--scenes", "10"],
+     {"kitchen_week", "at_scale", "ingest"}),
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",

@@ -98,7 +98,8 @@ def demo(mongo_uri: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[d
     database = f"test_readme_{secrets.token_hex(4)}"
     env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
            "PYTHONPATH": str(ROOT), "MONGODB_URI": mongo_uri, "PMEM_DB": database,
-           "PMEM_SHARED_DATA": str(ROBOSHERLOCK)}
+           "PMEM_SHARED_DATA": str(ROBOSHERLOCK),
+           "PMEM_DATA_DIR": str(tmp_path_factory.mktemp("data"))}  # similarity indexes go here
     loaded = subprocess.run(["pmem", "demo", "--no-serve", "--workers", "0"], env=env,
                             capture_output=True, text=True, timeout=900)
     assert loaded.returncode == 0, loaded.stderr

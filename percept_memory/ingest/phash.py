@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import imagehash
 import numpy as np
-from PIL import Image as PILImage
+
+from percept_memory.memory.types.appearance import perceptual_hash
 
 
 def crop_phash(bgr: np.ndarray) -> int:
     """The 64-bit pHash (imagehash's DCT hash) of a BGR (or grey) uint8 crop."""
-    rgb = np.ascontiguousarray(bgr[..., ::-1]) if bgr.ndim == 3 else bgr
-    return int(str(imagehash.phash(PILImage.fromarray(rgb))), 16)
+    return int(perceptual_hash(bgr), 16)
 
 
 def hamming(a: int, b: int) -> int:

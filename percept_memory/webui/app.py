@@ -28,6 +28,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
+from . import similar
 from .catalogue import catalogue_router
 from .errors import (
     READ_ERRORS,
@@ -143,6 +144,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(export_router(store, settings))
     app.include_router(cloud_router(store))
     app.include_router(catalogue_router(store))
+    app.include_router(similar.routes(store, settings))
 
     @app.get("/api/pipeline", summary="How far the belief of each map is",
              responses=READ_ERRORS)

@@ -66,7 +66,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             context["problems"] = [str(error)]
             return page(request, "search.html", context, 422)
         context.update(hits=found.items, total=found.total, export=_exported(asked),
-                       crops=await run_in_threadpool(_with_crops, store, found.items))
+                       crops=await run_in_threadpool(with_crops, store, found.items))
         if found.next:
             rest = [(k, v) for k, v in asked if k != "cursor"]
             context["next"] = "/search?" + urlencode([*rest, ("cursor", found.next),
@@ -119,7 +119,7 @@ def _choices(store: MemoryStore) -> dict:
             "predicates": predicates, "max_k": MAX_K}
 
 
-def _with_crops(store: MemoryStore, hits: list) -> set:
+def with_crops(store: MemoryStore, hits: list) -> set:
     """The ids of the hits that have an image crop to show."""
     found = store.clusters.find({"_id": {"$in": [h.id for h in hits]},
                                  "hypotheses": {"$elemMatch": {"crop": {"$ne": None}}}}, {"_id": 1})

@@ -8,7 +8,9 @@ querying by its fields follow from its annotations. A class may also say
   dictionary (the long-term catalogue, memory/catalogue/, Duceux 5.3);
 - `similarity(a, b)`: how alike two observations look by this kind of evidence, in [0, 1]
   (identity resolution combines the kinds two observations share, thesis 6.1.2); or, faster,
-  `similarities(a, b)` for two lists at once, a matrix (the built-in types: compare.py).
+  `similarities(a, b)` for two lists at once, a matrix (the built-in types: compare.py);
+- `descriptors()`: the same evidence as named unit vectors, for similarity search
+  (appearance.py says how; memory/similarity.py indexes them).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from bson import ObjectId
 from pydantic import AliasChoices, Field
 
 from . import compare
+from .appearance import sqrt_distribution, unit
 from .base import Id, Identifiable, Model, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
@@ -51,17 +54,17 @@ class Annotation(Identifiable):
         """None: this kind of annotation says nothing about whether two observations match."""
         return None
 
-
-def _sqrt_distribution(histogram) -> np.ndarray | None:
-    p = np.clip(histogram.histogram.astype(float).ravel(), 0, None)
-    total = p.sum()
-    return np.sqrt(p / total) if total > 0 else None
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """Name -> unit vector: what similarity search finds look-alikes by (none here)."""
+        return {}
 
 
-def _unit_vector(feature) -> np.ndarray | None:
-    u = feature.vector.astype(float).ravel()
-    norm = np.linalg.norm(u)
-    return u / norm if norm > 0 else None
+def _sqrt_distribution(histogram: ColorHistogram) -> np.ndarray | None:
+    return sqrt_distribution(histogram.histogram)
+
+
+def _unit_vector(feature: FeatureVector) -> np.ndarray | None:
+    return unit(feature.vector)
 
 
 @stored_type("pm.annotation.Location")
@@ -182,6 +185,12 @@ class ColorHistogram(Annotation):
         return compare.pairwise(a, b, lambda h: (h.space, h.histogram.shape), _sqrt_distribution,
                          lambda p, q: np.minimum(p @ q.T, 1.0))
 
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """The same square roots, so search ranks by the same overlap (per space and size)."""
+        vector = _sqrt_distribution(self)
+        return {} if vector is None else {
+            f"histogram-{self.space}-{vector.size}": vector}
+
 
 @stored_type("pm.annotation.FeatureVector")
 class FeatureVector(Annotation):
@@ -198,6 +207,11 @@ class FeatureVector(Annotation):
         """Cosine of every pair at once (0 for opposite directions)."""
         return compare.pairwise(a, b, lambda f: (f.name, f.vector.shape), _unit_vector,
                          lambda u, v: np.clip(u @ v.T, 0.0, 1.0))
+
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """The direction, so search ranks by the same cosine (per name and length)."""
+        vector = _unit_vector(self)
+        return {} if vector is None else {f"feature-{self.name}-{vector.size}": vector}
 
 
 @stored_type("pm.annotation.Text")

@@ -6,6 +6,7 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from . import compare
+from .appearance import crop_descriptors, hash_bits
 from .base import Model, stored_type
 from .json_forms import image_limit
 from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3, check_pixels
@@ -18,6 +19,9 @@ class Hypothesis(Model):
         """View descriptors of the object's look (annotations.Annotation.views): none here."""
         return []
 
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """Name -> unit vector, as Annotation.descriptors (none here)."""
+        return {}
 
 PHASH_PATTERN = "^[0-9a-f]{16}$"
 PHASH_SIGMA_BITS = 6.5  # g(4 bits) = 0.91, g(12) = 0.43, g(28) = 0.01
@@ -54,6 +58,14 @@ class ImageROI(Hypothesis):
         apart (95 % within 12), different objects' a median 28 (95 % beyond 22)."""
         return compare.hash_nearness([x.phash for x in a], [y.phash for y in b],
                                      PHASH_SIGMA_BITS)
+
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """The crop's colours and gradients (appearance.py), and the hash's bits."""
+        found = {} if self.crop is None else crop_descriptors(
+            self.crop.data, None if self.mask is None else self.mask.data)
+        if self.phash is not None:
+            found["phash"] = hash_bits(self.phash)
+        return found
 
 
 @stored_type("pm.hypothesis.PointCluster")

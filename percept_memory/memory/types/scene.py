@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import TypeVar
 
+import numpy as np
 from pydantic import Field, model_validator
 
 from .annotations import Annotation, Location, LogLine, Relation
@@ -32,6 +33,16 @@ class Cluster(Identifiable):
 
     def hypothesis_of(self, kind: type[Hypothesis]) -> Hypothesis | None:
         return next((h for h in self.hypotheses if isinstance(h, kind)), None)
+
+    def descriptors(self) -> dict[str, np.ndarray]:
+        """Name -> unit vector over its hypotheses and annotations (the first of each name):
+        what similarity search compares it by."""
+        found: dict[str, np.ndarray] = {}
+        for part in (*self.hypotheses, *self.annotations):
+            if isinstance(part, Hypothesis | Annotation):
+                for name, vector in part.descriptors().items():
+                    found.setdefault(name, vector)
+        return found
 
     def location(self) -> Location | None:
         """The first location annotation that gives a position or region."""

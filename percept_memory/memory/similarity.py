@@ -1,0 +1,437 @@
+"""Vector indexes for similarity search ("find more like this"): one approximate-nearest-
+neighbour index per descriptor (the named unit vectors types declare: types/appearance.py),
+kept in a folder beside the database and derived from it (MongoDB is the source of truth).
+
+Why usearch: of the well-kept ANN libraries on PyPI, usearch ships a 2.3 MB wheel for every
+platform, saves and loads (or memory-maps) an index as one file, and removes and adds vectors
+in place. hnswlib has no wheel (PyPI holds its source only: a C++ compiler at install time)
+and filters through a Python callback per candidate; faiss-cpu is a 19 MB wheel whose HNSW
+index cannot remove a vector. Filters need no help from the library: every cluster's time,
+robot, region and map never change once stored, so the index keeps them as numpy arrays (a
+row per cluster) and a filter is a mask over the rows. When at most EXACT_ROWS pass, those
+rows are searched exactly, from the vectors kept a second time as a matrix by row (memory
+for speed: a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the
+graph's neighbours are over-fetched and masked.
+
+Kept current from a watermark, not a pipeline stage: the folder is local to each process
+(`pmem serve`, `pmem query`) while MongoDB may be shared, so each process's index catches up
+by itself before it answers (`refresh`): it reads the clusters whose ids are newer than the
+newest it holds (less a margin: ids come from the storing clients' clocks) and adds those it
+lacks. When the count of clusters still differs (ids older than the margin, clusters removed)
+it compares every id with MongoDB's and adds or removes the difference. Storing a scene does
+no index work at all; the first query after a burst of ingest pays for it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+import threading
+import zlib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path
+from zipfile import BadZipFile
+
+import numpy as np
+from bson import ObjectId
+from usearch.index import Index
+
+from .schema import CLUSTERS, SCENES
+from .settings import Settings
+from .store import MemoryStore
+
+log = logging.getLogger(__name__)
+
+FORMAT = 2  # of the folder's files: another number means rebuild
+# How far behind the newest id indexed a cluster may still appear (ids come from the clock of
+# the client that stored it, before its transaction commits). Later ones are found by the
+# count check; a wider margin costs every refresh the ids stored in it.
+MARGIN = timedelta(seconds=10)
+EXPANSION_SEARCH = 128  # usearch's default 64 finds half the true 10 nearest of random data
+CHUNK = 500  # clusters read and described at a time
+EXACT_ROWS = 50_000  # when a filter passes at most this many rows, search them exactly
+SAVE_EVERY = 1000  # rows added or removed since the files were written
+META = ("time", "robot", "region", "map")  # per row; robot, region and map as codes
+COLUMNS = {"live": bool, "time": np.int64, "robot": np.int32, "region": np.int32,
+           "map": np.int32}
+
+
+@dataclass
+class Match:
+    """One cluster found: its id and how alike it is per descriptor (cosine, clipped to
+    0..1), and over all the descriptors both have (their mean)."""
+
+    cluster_id: ObjectId
+    similarity: float
+    descriptors: dict[str, float]
+
+
+@dataclass
+class Entry:
+    """A cluster to index: what filters read of it, and its descriptors."""
+
+    cluster_id: ObjectId
+    time: int
+    robot: str | None
+    region: str | None
+    map: str | None
+    descriptors: Mapping[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class RowFilter:
+    """Which clusters may be found: any of these robots, regions and maps, in a time window
+    (nanoseconds, both ends included). Empty means any."""
+
+    robot: Sequence[str] = ()
+    region: Sequence[str] = ()
+    map: Sequence[str] = ()
+    after: int | None = None
+    before: int | None = None
+
+
+class Rows:
+    """The clusters the index knows, one row each, in the order they were added: the row is
+    the key of the cluster's vectors in every descriptor's index. Columns are numpy arrays
+    (grown by doubling), so a filter over a million rows is a few vector operations."""
+
+    def __init__(self, ids: Sequence[ObjectId] = (), columns: Mapping[str, np.ndarray] | None
+                 = None, names: Mapping[str, list] | None = None):
+        self.ids = list(ids)
+        self.row_of = {oid: row for row, oid in enumerate(self.ids)}
+        self.newest = max(self.ids, default=None)
+        self.names = {key: list((names or {}).get(key, [])) for key in META[1:]}
+        self._code_of = {k: {n: i for i, n in enumerate(v)} for k, v in self.names.items()}
+        given = columns or {}
+        self.columns = {key: np.array(given.get(key, []), dtype=dtype)
+                        for key, dtype in COLUMNS.items()}
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def holds(self, cluster_id: ObjectId) -> bool:
+        """Whether the cluster has a row still in the database (one removed and stored again
+        gets a new row)."""
+        row = self.row_of.get(cluster_id)
+        return row is not None and bool(self.columns["live"][row])
+
+    def live_count(self) -> int:
+        return int(self.columns["live"][:len(self)].sum())
+
+    def add(self, cluster_id: ObjectId, time: int, values: Mapping[str, str | None]) -> int:
+        row = len(self.ids)
+        if row == len(self.columns["live"]):
+            for key, column in self.columns.items():
+                self.columns[key] = np.resize(column, max(16, 2 * row))
+        self.columns["live"][row] = True
+        self.columns["time"][row] = time
+        for key, codes in self._code_of.items():
+            if values[key] not in codes:
+                codes[values[key]] = len(self.names[key])
+                self.names[key].append(values[key])
+            self.columns[key][row] = codes[values[key]]
+        self.ids.append(cluster_id)
+        self.row_of[cluster_id] = row
+        self.newest = cluster_id if self.newest is None else max(self.newest, cluster_id)
+        return row
+
+    def mask(self, f: RowFilter) -> np.ndarray:
+        """Which rows pass the filter (and are still in the database)."""
+        n = len(self)
+        keep = self.columns["live"][:n].copy()
+        time = self.columns["time"][:n]
+        if f.after is not None:
+            keep &= time >= f.after
+        if f.before is not None:
+            keep &= time <= f.before
+        for key in META[1:]:
+            wanted = getattr(f, key)
+            if wanted:
+                chosen = np.zeros(len(self.names[key]), bool)  # by code: a gather, not a search
+                chosen[[self._code_of[key][v] for v in wanted if v in self._code_of[key]]] = True
+                keep &= chosen[self.columns[key][:n]]
+        return keep
+
+    def save(self, folder: Path) -> None:
+        """Write the rows in one file (ids, columns and the names the codes stand for)."""
+        n = len(self)
+        ids = np.frombuffer(b"".join(i.binary for i in self.ids), np.uint8).reshape(-1, 12)
+        np.savez(folder / "rows.npz", ids=ids, names=np.array(json.dumps(self.names)),
+                 **{key: column[:n] for key, column in self.columns.items()})
+
+    @classmethod
+    def load(cls, folder: Path) -> Rows:
+        with np.load(folder / "rows.npz") as data:
+            return cls([ObjectId(row.tobytes()) for row in data["ids"]],
+                       {key: data[key] for key in COLUMNS}, json.loads(str(data["names"])))
+
+
+class Vectors:
+    """One descriptor's vectors, twice: in an HNSW graph (usearch) for the nearest among many
+    rows, and as a matrix by row for exact scores of a few (a filter's rows, the candidates):
+    gathering and multiplying 36,000 rows of a million takes a few milliseconds, fetching as
+    many neighbours from the graph ten times that."""
+
+    def __init__(self, ndim: int, index: Index | None = None, matrix: np.ndarray | None = None,
+                 present: np.ndarray | None = None):
+        self.index = index or Index(ndim=ndim, metric="ip", dtype="f32",
+                                    expansion_search=EXPANSION_SEARCH)
+        self.index.expansion_search = EXPANSION_SEARCH
+        self.matrix = np.zeros((0, ndim), np.float32) if matrix is None else matrix
+        self.present = np.zeros(0, bool) if present is None else present
+
+    @property
+    def ndim(self) -> int:
+        return self.matrix.shape[1]
+
+    def add(self, rows: np.ndarray, stack: np.ndarray) -> None:
+        held = len(self.present)
+        if rows.max() >= held:
+            size = max(16, 2 * held, int(rows.max()) + 1)
+            self.matrix = np.resize(self.matrix, (size, self.ndim))
+            self.present = np.resize(self.present, size)
+            self.present[held:] = False
+        self.matrix[rows] = stack
+        self.present[rows] = True
+        self.index.add(rows.astype(np.uint64), stack)
+
+    def remove(self, row: int) -> None:
+        if self.has(np.array([row]))[0]:
+            self.present[row] = False
+            self.index.remove(row)
+
+    def has(self, rows: np.ndarray) -> np.ndarray:
+        """Which of the rows have this descriptor."""
+        inside = rows < len(self.present)
+        out = np.zeros(len(rows), bool)
+        out[inside] = self.present[rows[inside]]
+        return out
+
+    def scores(self, rows: np.ndarray, vector: np.ndarray) -> np.ndarray:
+        return self.matrix[rows] @ vector
+
+    def nearest(self, vector: np.ndarray, count: int) -> np.ndarray:
+        return self.index.search(vector, min(count, len(self.index))).keys.astype(np.int64)
+
+    def save(self, folder: Path, name: str) -> str:
+        base = _file_name(name)
+        self.index.save(str(folder / f"{base}.usearch"))
+        np.save(folder / f"{base}.npy", self.matrix[:len(self.present)])
+        np.save(folder / f"{base}.present.npy", self.present)
+        return base
+
+    @classmethod
+    def load(cls, folder: Path, base: str) -> Vectors:
+        index = Index.restore(str(folder / f"{base}.usearch"))
+        if index is None:
+            raise ValueError(f"{base}.usearch is missing")
+        matrix = np.load(folder / f"{base}.npy")
+        return cls(matrix.shape[1], index, matrix, np.load(folder / f"{base}.present.npy"))
+
+
+class SimilarityIndex:
+    """The descriptor indexes of one database, in `folder`. Thread-safe."""
+
+    def __init__(self, store: MemoryStore, folder: Path):
+        self.store = store
+        self.folder = folder
+        self.lock = threading.RLock()
+        self.rows = Rows()
+        self.vectors: dict[str, Vectors] = {}
+        self.unsaved = 0
+        self._loaded = False
+
+    @classmethod
+    def of(cls, store: MemoryStore, settings: Settings) -> SimilarityIndex:
+        """The index of the settings' database, under the data directory."""
+        return cls(store, Path(settings.data_dir) / "similarity" / settings.db)
+
+    # --- keeping it current ----------------------------------------------------------------
+
+    def refresh(self) -> int:
+        """Catch up with MongoDB (see the module's docstring): returns the rows changed."""
+        with self.lock:
+            if not self._loaded:
+                self.load()
+            changed = self._add(self._recent_unknown())
+            clusters = self.store.db[CLUSTERS].estimated_document_count()
+            if clusters != self.rows.live_count():
+                changed += self._reconcile()
+            self.unsaved += changed
+            if self.unsaved >= SAVE_EVERY or (self.unsaved and not self._saved_once()):
+                self.save()
+            return changed
+
+    def _recent_unknown(self) -> list[ObjectId]:
+        newest = self.rows.newest
+        query = {} if newest is None else {"_id": {"$gte": ObjectId.from_datetime(
+            newest.generation_time - MARGIN)}}
+        return [i for i in self._ids(query) if not self.rows.holds(i)]
+
+    def _ids(self, query: dict) -> list[ObjectId]:
+        return [d["_id"] for d in self.store.db[CLUSTERS].find(query, {"_id": 1}).sort("_id")]
+
+    def _reconcile(self) -> int:
+        stored = set(self._ids({}))
+        live = self.rows.columns["live"]
+        gone = [row for row, oid in enumerate(self.rows.ids) if live[row] and oid not in stored]
+        for row in gone:
+            live[row] = False
+            for vectors in self.vectors.values():
+                vectors.remove(row)
+        missing = sorted(i for i in stored if not self.rows.holds(i))
+        log.info("similarity: %d clusters missing from the index, %d gone", len(missing),
+                 len(gone))
+        return len(gone) + self._add(missing)
+
+    def _add(self, cluster_ids: Sequence[ObjectId]) -> int:
+        """Read and describe these clusters, a chunk at a time, and add them."""
+        for start in range(0, len(cluster_ids), CHUNK):
+            chunk = cluster_ids[start:start + CHUNK]
+            clusters = self.store.get_clusters(chunk)
+            meta = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
+                {"_id": {"$in": list(chunk)}},
+                {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
+            maps = {d["_id"]: d.get("map") for d in self.store.db[SCENES].find(
+                {"_id": {"$in": [d.get("scene_id") for d in meta.values()]}}, {"map": 1})}
+            self.add(Entry(cluster_id, search.get("time", 0), search.get("robot"),
+                           search.get("region"), maps.get(meta[cluster_id].get("scene_id")),
+                           cluster.descriptors())
+                     for cluster_id, cluster in clusters.items()
+                     for search in [meta[cluster_id].get("search", {})])
+        return len(cluster_ids)
+
+    def add(self, entries: Iterable[Entry]) -> None:
+        """Add clusters with their descriptors (non-finite vectors are left out)."""
+        with self.lock:
+            self._loaded = True
+            vectors: dict[str, tuple[list[int], list[np.ndarray]]] = {}
+            for entry in entries:
+                row = self.rows.add(entry.cluster_id, entry.time, {
+                    "robot": entry.robot, "region": entry.region, "map": entry.map})
+                for name, vector in entry.descriptors.items():
+                    if np.all(np.isfinite(vector)):
+                        keys, stack = vectors.setdefault(name, ([], []))
+                        keys.append(row)
+                        stack.append(vector)
+            for name, (keys, stack) in vectors.items():
+                if name not in self.vectors:
+                    self.vectors[name] = Vectors(stack[0].size)
+                self.vectors[name].add(np.array(keys), np.stack(stack).astype(np.float32))
+
+    # --- files -----------------------------------------------------------------------------
+
+    def _state_path(self) -> Path:
+        return self.folder / "rows.json"
+
+    def _saved_once(self) -> bool:
+        return self._state_path().exists()
+
+    def save(self) -> None:
+        """Write the vectors, then the rows, then the state file naming the vectors' files
+        (load checks that no vectors belong to rows that were not written)."""
+        with self.lock:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            files = {name: vectors.save(self.folder, name) for name, vectors in
+                     self.vectors.items()}
+            self.rows.save(self.folder)
+            state = {"format": FORMAT, "files": files}
+            temporary = self._state_path().with_suffix(".tmp")
+            temporary.write_text(json.dumps(state))
+            temporary.replace(self._state_path())
+            self.unsaved = 0
+
+    def load(self) -> None:
+        """Read the folder's files, if they are whole and of this format."""
+        self._loaded = True
+        try:
+            state = json.loads(self._state_path().read_text())
+            if state.get("format") != FORMAT:
+                raise ValueError(f"format {state.get('format')}, not {FORMAT}")
+            rows = Rows.load(self.folder)
+            vectors = {name: Vectors.load(self.folder, base)
+                       for name, base in state["files"].items()}
+            if any(len(v.present) > len(rows) for v in vectors.values()):
+                raise ValueError("a save did not finish (vectors of rows not written)")
+        except FileNotFoundError:
+            return
+        except (ValueError, KeyError, TypeError, RuntimeError, OSError, BadZipFile) as error:
+            log.warning("similarity: the index in %s is not usable (%s): rebuilding it",
+                        self.folder, error)
+            return
+        self.rows, self.vectors = rows, vectors
+
+    # --- searching -------------------------------------------------------------------------
+
+    def descriptors_of(self, cluster_id: ObjectId) -> dict[str, np.ndarray]:
+        """The stored vectors of an indexed cluster (empty when it is not indexed)."""
+        with self.lock:
+            row = self.rows.row_of.get(cluster_id)
+            if row is None:
+                return {}
+            return {name: vectors.matrix[row].copy() for name, vectors in self.vectors.items()
+                    if vectors.has(np.array([row]))[0]}
+
+    def names(self) -> list[str]:
+        with self.lock:
+            return sorted(self.vectors)
+
+    def search(self, query: Mapping[str, np.ndarray], k: int, where: RowFilter = RowFilter(),
+               exclude: Iterable[ObjectId] = ()) -> list[Match]:
+        """The k clusters most alike the query's descriptors (those the index has), best
+        first, among those the filter lets through."""
+        with self.lock:
+            allowed = self.rows.mask(where)
+            for oid in exclude:
+                if oid in self.rows.row_of:
+                    allowed[self.rows.row_of[oid]] = False
+            wanted = {name: np.asarray(v, np.float32) for name, v in query.items()
+                      if name in self.vectors and self.vectors[name].ndim == np.size(v)}
+            candidates: set[int] = set()
+            for name, vector in wanted.items():
+                candidates |= self._nearest(self.vectors[name], vector, 2 * k, allowed)
+            return self._ranked(wanted, np.array(sorted(candidates), np.int64), k)
+
+    def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int, allowed: np.ndarray
+                 ) -> set[int]:
+        """The `count` allowed rows nearest the vector: exactly among few allowed rows, else
+        from ever more neighbours until enough of them are allowed."""
+        passing = np.flatnonzero(allowed)
+        if len(passing) <= EXACT_ROWS:
+            rows = passing[vectors.has(passing)]
+            scores = vectors.scores(rows, vector)
+            return set(rows[np.argsort(-scores)[:count]].tolist())
+        fetch = int(count * len(allowed) / len(passing) * 2)
+        while True:
+            keys = vectors.nearest(vector, fetch)
+            kept = keys[allowed[keys]]
+            if len(kept) >= count or fetch >= len(vectors.index):
+                return set(kept[:count].tolist())
+            fetch *= 4
+
+    def _ranked(self, query: Mapping[str, np.ndarray], rows: np.ndarray, k: int
+                ) -> list[Match]:
+        if not len(rows):
+            return []
+        scores = {}
+        for name, vector in query.items():
+            vectors = self.vectors[name]
+            present = vectors.has(rows)
+            score = np.full(len(rows), np.nan)
+            score[present] = np.clip(vectors.scores(rows[present], vector), 0, 1)
+            scores[name] = score
+        table = np.array(list(scores.values()))
+        combined = np.nanmean(table, axis=0)
+        order = np.argsort(-combined, kind="stable")[:k]
+        return [Match(self.rows.ids[rows[i]], round(float(combined[i]), 4),
+                      {name: round(float(s[i]), 4) for name, s in scores.items()
+                       if not np.isnan(s[i])})
+                for i in order]
+
+
+def _file_name(descriptor: str) -> str:
+    """A file name for a descriptor's files (names come from types: any characters)."""
+    return f"{re.sub(r'[^A-Za-z0-9_.-]', '_', descriptor)}-{zlib.crc32(descriptor.encode())}"

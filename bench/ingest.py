@@ -103,10 +103,10 @@ def free_port() -> int:
 
 def over_http(db: str, count: int, batch: int, image, progress: Progress,
               consolidator: bool) -> dict:
-    generated = scenes(count, 1_800_000_000_000_000_000, image, seed=2)
-    bodies = [
+    generated = scenes(count + batch, 1_800_000_000_000_000_000, image, seed=2)
+    first, *bodies = [
         "[" + ",".join(s.model_dump_json(by_alias=True) for s in generated[i : i + batch]) + "]"
-        for i in range(0, count, batch)
+        for i in range(0, count + batch, batch)
     ]
     port = free_port()
     server = subprocess.Popen(
@@ -114,16 +114,23 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
         env={**os.environ, "PMEM_DB": db, "PMEM_MAX_REQUEST_MB": "256",
              "PMEM_CONSOLIDATOR": str(consolidator).lower()},
     )
-    task = progress.add_task("over HTTP", total=count)
+    task = progress.add_task("over HTTP", total=count + batch)
     try:
         with httpx2.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
             _wait_until_up(client)
-            start = time.perf_counter()
-            for body in bodies:
+
+            def post(body: str) -> None:
                 response = client.post("/api/scenes", content=body,
                                        headers={"content-type": "application/json"})
                 response.raise_for_status()
                 progress.advance(task, len(response.json()["scenes"]))
+
+            start = time.perf_counter()
+            post(first)  # the server's first large body starts its ingest workers: untimed
+            first_s = time.perf_counter() - start
+            start = time.perf_counter()
+            for body in bodies:
+                post(body)
             seconds = time.perf_counter() - start
             pending = _pending(client)
             caught_up = _caught_up_s(client) if consolidator else None
@@ -137,6 +144,7 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
         "belief_caught_up_s_after_the_end": caught_up,
         "scenes": count,
         "batch": batch,
+        "first_request_s": round(first_s, 2),  # not in the rate: it starts the workers
         "request_mb": round(sum(map(len, bodies)) / len(bodies) / 2**20, 2),
         "clusters_per_s": round(count * CLUSTERS / seconds),
         "requests_per_s": round(len(bodies) / seconds, 2),

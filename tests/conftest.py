@@ -5,7 +5,10 @@ from __future__ import annotations
 import os
 import secrets
 import socket
+import threading
+import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -91,3 +94,24 @@ def kitchen(store):
     truth_of = {cluster.id: week.truth.object_at(i, j)
                 for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
     return week, truth_of
+
+
+@contextmanager
+def served(app) -> Iterator[str]:
+    """A real uvicorn server of `app` on a free loopback port, in a thread: its base URL."""
+    import uvicorn
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,
+                                           log_level="warning"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 20
+    while not server.started:
+        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
+        time.sleep(0.05)
+    yield f"http://127.0.0.1:{port}"
+    server.should_exit = True
+    thread.join(10)

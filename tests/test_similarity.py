@@ -6,15 +6,12 @@ from __future__ import annotations
 import base64
 import json
 import re
-import socket
-import threading
 import time
 from collections import Counter
 
 import cv2
 import numpy as np
 import pytest
-import uvicorn
 from bson import ObjectId
 from click.testing import CliRunner
 from fastapi.testclient import TestClient
@@ -31,7 +28,7 @@ from percept_memory.memory.types.appearance import crop_descriptors
 from percept_memory.queries.similar import Similarity
 from percept_memory.webui.app import create_app
 
-from .conftest import LOCAL, ingest_consolidated
+from .conftest import LOCAL, ingest_consolidated, served
 from .test_webui import ALL_LOADED, browser, page, shot  # noqa: F401 (fixtures)
 
 
@@ -290,20 +287,8 @@ def test_pmem_query_similar(settings, day, mongo_uri, db_name, tmp_path):
 @pytest.fixture(scope="module")
 def url(store, day, settings):
     """A real uvicorn server on a free loopback port, in a thread."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(store, settings), host="127.0.0.1",
-                                           port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    with served(create_app(store, settings)) as url:
+        yield url
 
 
 def test_more_like_this_shows_ranked_crops(page, url, day):  # noqa: F811 (page: a fixture)

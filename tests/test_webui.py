@@ -11,8 +11,6 @@ from __future__ import annotations
 import html
 import re
 import socket
-import threading
-import time
 from collections import Counter
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -20,7 +18,6 @@ from urllib.parse import urlencode
 
 import numpy as np
 import pytest
-import uvicorn
 from bson import ObjectId
 from fastapi.testclient import TestClient
 from markupsafe import escape
@@ -51,7 +48,7 @@ from percept_memory.webui.app import create_app
 from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.scene_log import CHOICES
 
-from .conftest import LOCAL, ROBOSHERLOCK, ingest_consolidated
+from .conftest import LOCAL, ROBOSHERLOCK, ingest_consolidated, served
 from .test_store import snapshot
 
 CHROMIUM = Path("/usr/bin/chromium")
@@ -158,20 +155,8 @@ def client(filled):
 @pytest.fixture(scope="module")
 def url(filled):
     """A real uvicorn server on a free loopback port, in a thread."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(filled, Settings()), host="127.0.0.1",
-                                           port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    with served(create_app(filled, Settings())) as url:
+        yield url
 
 
 @pytest.fixture(scope="module")

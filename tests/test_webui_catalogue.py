@@ -2,12 +2,7 @@
 
 from __future__ import annotations
 
-import socket
-import threading
-import time
-
 import pytest
-import uvicorn
 from playwright.sync_api import sync_playwright
 
 from percept_memory.demo import kitchen_week
@@ -15,27 +10,15 @@ from percept_memory.memory.settings import Settings
 from percept_memory.queries import catalogue
 from percept_memory.webui.app import create_app
 
-from .conftest import ingest_consolidated
+from .conftest import ingest_consolidated, served
 from .test_webui import ALL_LOADED, CHROMIUM, SCREENSHOTS
 
 
 @pytest.fixture(scope="module")
 def url(store):
     ingest_consolidated(store, kitchen_week.generate(days=2).scenes)
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    server = uvicorn.Server(uvicorn.Config(create_app(store, Settings()), host="127.0.0.1",
-                                           port=port, log_level="warning"))
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "uvicorn did not start"
-        time.sleep(0.05)
-    yield f"http://127.0.0.1:{port}"
-    server.should_exit = True
-    thread.join(10)
+    with served(create_app(store, Settings())) as url:
+        yield url
 
 
 def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):

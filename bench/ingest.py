@@ -32,9 +32,9 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import footprint, print_json, scratch_store
 
-from percept_memory.cli import collect_less
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory.settings import collect_less
 from percept_memory.memory.store import MemoryStore
 
 KITCHEN = Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples/kitchen"

@@ -32,9 +32,9 @@ from rich.console import Console
 from rich.progress import Progress
 from scratch import print_json, scratch_store
 
-from percept_memory.cli import collect_less
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
+from percept_memory.memory.settings import collect_less
 
 
 def throughput(scenes: list, progress: Progress) -> dict:

@@ -32,9 +32,9 @@ from bson import ObjectId
 from ingest import kitchen_image, scenes
 from scratch import print_json, scratch_store
 
-from percept_memory.cli import collect_less
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory.settings import collect_less
 from percept_memory.memory.similarity import Entry, RowFilter, SimilarityIndex
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.similar import Similarity

@@ -27,7 +27,7 @@ from pydantic import ValidationError
 from percept_memory.ingest.errors import BackendSetupError, IngestError, SourceError
 from percept_memory.memory.errors import StoreError, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
-from percept_memory.memory.settings import Settings, settings_help
+from percept_memory.memory.settings import Settings, collect_less, settings_help
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -80,18 +80,6 @@ def main(ctx: click.Context) -> None:
     logger.handlers = [_StderrHandler()]
     logger.setLevel(logging.INFO)
     ctx.obj = Settings()
-
-
-GC_THRESHOLDS = (50_000, 20, 10)
-
-
-def collect_less() -> None:
-    """Python's cycle collector runs every 700 allocations by default; a scene allocates
-    thousands of objects (validating, encoding, deciding who is who), nearly all freed by
-    their reference counts. Every pmem process collects every 50,000 instead: 10-20 % less
-    CPU per scene stored or consolidated (bench/ingest.py, bench/pipeline.py), for the memory
-    of at most that many objects waiting for a collection."""
-    gc.set_threshold(*GC_THRESHOLDS)
 
 
 # --- pmem db: the embedded mongod --------------------------------------------------------------

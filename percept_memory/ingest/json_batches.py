@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.json_input import parse
 from percept_memory.memory import documents as docs
+from percept_memory.memory.settings import collect_less
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +89,8 @@ class JsonWorkers:
         out of memory): the pool starts afresh next time, and the caller does it itself."""
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                self.processes, mp_context=multiprocessing.get_context("spawn"))
+                self.processes, mp_context=multiprocessing.get_context("spawn"),
+                initializer=collect_less)
         try:
             futures = [self._pool.submit(prepared_part, body, part, self.processes,
                                          dict(context), threshold)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 from pathlib import Path
 from typing import Literal
@@ -163,3 +164,15 @@ def settings_help() -> str:
     return "\n".join(
         f"  {field.description}" for field in Settings.model_fields.values() if field.description
     )
+
+
+GC_THRESHOLDS = (50_000, 20, 10)
+
+
+def collect_less() -> None:
+    """Python's cycle collector runs every 700 allocations by default; a scene allocates
+    thousands of objects (validating, encoding, deciding who is who), nearly all freed by
+    their reference counts. Every pmem process collects every 50,000 instead: 10-20 % less
+    CPU per scene stored or consolidated (bench/ingest.py, bench/pipeline.py), for the memory
+    of at most that many objects waiting for a collection."""
+    gc.set_threshold(*GC_THRESHOLDS)

@@ -415,7 +415,6 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     learns from the confident decisions; without one, the prior calibration is used."""
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
-    # the cues of every pair, then their odds at once
     # the cues of every pair, then their odds at once; the new observations with each other
     # too (one scene's clusters are different objects: _learn)
     groups = [o.by_type for o in new]

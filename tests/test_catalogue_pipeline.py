@@ -10,24 +10,19 @@ from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.pipeline import Pipeline, request_rebuild
 
 from .test_catalogue_store import stored_catalogue
+from .test_pipeline import Failing
 
 
-class FailingOnce:
+class FailingOnce(Failing):
     """A stage after the catalogue that fails the first time it sees one of these scenes."""
 
     name = "failing_once"
-    belief = False
-
-    def __init__(self, bad: set):
-        self.bad = bad
 
     def apply(self, scene_ids, map_name, session):
-        if self.bad & set(scene_ids):
+        try:
+            super().apply(scene_ids, map_name, session)
+        finally:
             self.bad -= set(scene_ids)
-            raise ValueError("not this time")
-
-    def reset(self, map_name):
-        pass
 
 
 def test_aborted_batches_leave_no_trace_in_the_catalogue(store):

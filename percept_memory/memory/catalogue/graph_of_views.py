@@ -91,7 +91,7 @@ def intersection_size(i: GraphOfViews, j: GraphOfViews) -> int:
 
 def inclusion_degree(i: GraphOfViews, j: GraphOfViews) -> float:
     """|I n J| / |I| (eq. 5.2): 1 when J explains all of I."""
-    return intersection_size(i, j) / len(i) if len(i) else 0.0
+    return Comparison(i, j).inclusion
 
 
 def intersection_over_union(i: GraphOfViews, j: GraphOfViews) -> float:
@@ -115,9 +115,35 @@ def normalized_jmi(i: GraphOfViews, j: GraphOfViews, max_modalities: int) -> flo
     """joint_modalities_intersection / (max_modalities * |I|) (eq. 5.7): normalised by the
     modalities of the whole system, so that a partial model agreeing in few modalities weighs
     less than one agreeing in many."""
-    if not len(i):
-        return 0.0
-    return joint_modalities_intersection(i, j) / (max_modalities * len(i))
+    return Comparison(i, j).normalized_jmi(max_modalities)
+
+
+class Comparison:
+    """The measures of one pair (I, J) from a single intersection: a learner compares a new
+    model with tens of others, each both ways and by its joint modalities (algorithm 5)."""
+
+    __slots__ = ("common", "size_i", "size_j")
+
+    def __init__(self, i: GraphOfViews, j: GraphOfViews):
+        self.common = i.elements & j.elements
+        self.size_i, self.size_j = len(i), len(j)
+
+    @property
+    def inclusion(self) -> float:
+        """inclusion_degree(I, J), eq. 5.2."""
+        return len(self.common) / self.size_i if self.size_i else 0.0
+
+    @property
+    def included(self) -> float:
+        """inclusion_degree(J, I), eq. 5.2."""
+        return len(self.common) / self.size_j if self.size_j else 0.0
+
+    def normalized_jmi(self, max_modalities: int) -> float:
+        """modalities_match * |I n J| / (max_modalities * |I|), eq. 5.7."""
+        if not self.size_i:
+            return 0.0
+        matched = len({modality(e) for e in self.common})
+        return matched * len(self.common) / (max_modalities * self.size_i)
 
 
 def per_modalities_inclusion(i: GraphOfViews, j: GraphOfViews) -> float:

@@ -18,7 +18,7 @@ from collections import Counter
 from collections.abc import Hashable, Iterable, Iterator
 from dataclasses import dataclass
 
-from .graph_of_views import GraphOfViews, inclusion_degree, normalized_jmi
+from .graph_of_views import Comparison, GraphOfViews
 
 
 @dataclass(frozen=True)
@@ -82,8 +82,8 @@ class Learner:
             else:
                 hits.update(clusters)
         if hits:
-            for cluster in hits:
-                hits[cluster] += sum(cluster in clusters for clusters in common)
+            for clusters in common:
+                hits.update(hits.keys() & clusters)
         else:
             for clusters in common:
                 hits.update(clusters)
@@ -143,14 +143,14 @@ class Learner:
         for m in compared:
             if m == g or m not in self.models:
                 continue
-            new, old = self.models[g].graph, self.models[m].graph
-            if inclusion_degree(new, old) > p.high_inclusion:  # g adds nothing to m
+            compared = Comparison(self.models[g].graph, self.models[m].graph)
+            if compared.inclusion > p.high_inclusion:  # g adds nothing to m
                 touched |= self._absorb(g, m)
                 return touched
-            if inclusion_degree(old, new) > p.high_inclusion:  # m adds nothing to g
+            if compared.included > p.high_inclusion:  # m adds nothing to g
                 touched |= self._absorb(m, g)
                 continue
-            weight = normalized_jmi(new, old, p.max_modalities)
+            weight = compared.normalized_jmi(p.max_modalities)
             if weight > p.low_similarity:
                 self._link(g, m, weight)
                 touched |= {m} | self._filter_edges(g) | self._filter_edges(m)

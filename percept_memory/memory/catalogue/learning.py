@@ -104,7 +104,7 @@ class Learner:
         self._add(model_id, PartialModel(graph, length))
         touched = {model_id}
         if ranked and ranked[0][1] >= self.params.recognised:
-            touched |= self._update_similarity_graph(model_id, self.members[ranked[0][0]])
+            touched |= self._update_similarity_graph(model_id, sorted(self.members[ranked[0][0]]))
         elif ranked:  # in between (nothing in common: a singleton, line 5)
             best = [c for c, _ in ranked[:self.params.closest_clusters]]
             near_singletons = [c for c, _ in ranked if c in self.singletons]
@@ -178,8 +178,9 @@ class Learner:
 
     def _recluster(self, touched: set) -> None:
         """The connected components around what changed (algorithm 9), reduced (algorithm 6).
-        A cluster that comes out with the same models, or more (a new model joined it), is
-        kept and grown: its union and index entries are the costly part."""
+        A part keeps the cluster of its name (its smallest model) and is reshaped from it by
+        the models that left and joined: a cluster's union and index entries are the costly
+        part, and a new model or a cut moves one or two models, not the whole cluster."""
         dissolved = self._dissolved | {self.cluster_of[t] for t in touched
                                        if t in self.cluster_of}
         nodes = {m for c in dissolved for m in self.members[c]} | touched
@@ -187,14 +188,13 @@ class Learner:
         self._dissolved = set()
         parts = [part for component in self._components(nodes)
                  for part in self._reduced(component)]
-        grown = {name: part - self.members[name] for part in parts
-                 if (name := min(part)) in dissolved and self.members[name] <= part}
-        for name in dissolved - grown.keys():
+        kept = {name for part in parts if (name := min(part)) in dissolved
+                and self.members[name] - part <= self.models.keys()}
+        for name in dissolved - kept:
             self._drop_cluster(name)
         for part in parts:
-            name = min(part)
-            if name in grown:
-                self._grow_cluster(name, grown[name])
+            if (name := min(part)) in kept:
+                self._reshape_cluster(name, part)
             else:
                 self._make_cluster(part)
 
@@ -273,25 +273,40 @@ class Learner:
         if len(members) == 1:
             self.singletons.add(name)
 
-    def _grow_cluster(self, name: Hashable, joined: set) -> None:
-        if not joined:
+    def _reshape_cluster(self, name: Hashable, members: set) -> None:
+        """The cluster `name` with these members instead: the union and the index follow the
+        models that left (all still known) and those that joined."""
+        old = self.members[name]
+        if old == members:
             return
         union = self._union[name]
-        for m in joined:
+        for m in old - members:
+            for element in self.models[m].graph.elements:
+                union[element] -= 1
+                if not union[element]:
+                    del union[element]
+                    self._discard_from_index(element, name)
+        for m in members - old:
             for element in self.models[m].graph.elements:
                 if not union[element]:
                     self._index.setdefault(element, set()).add(name)
                 union[element] += 1
             self.cluster_of[m] = name
             self.changed.add(m)
-        self.members[name] = self.members[name] | joined
-        self.singletons.discard(name)
+        self.members[name] = frozenset(members)
+        if len(members) == 1:
+            self.singletons.add(name)
+        else:
+            self.singletons.discard(name)
 
     def _drop_cluster(self, name: Hashable) -> None:
         for element in self._union.pop(name):
-            clusters = self._index[element]
-            clusters.discard(name)
-            if not clusters:
-                del self._index[element]
+            self._discard_from_index(element, name)
         del self.members[name]
         self.singletons.discard(name)
+
+    def _discard_from_index(self, element: str, name: Hashable) -> None:
+        clusters = self._index[element]
+        clusters.discard(name)
+        if not clusters:
+            del self._index[element]

@@ -95,6 +95,19 @@ def test_a_model_included_in_another_is_discarded():
     assert set(memory.models) == {3} and memory.members == {3: {3}}
 
 
+def test_a_discarded_model_passes_on_its_neighbours_as_alike_as_they_are_to_the_includer():
+    """Model 1 is linked to model 2 by the views 15-19 they share; model 3 includes model 1 but
+    shares only 15-17 with model 2: discarding 1 must not give 3 the 1-2 edge's weight."""
+    memory = learner(high_inclusion=0.75, low_similarity=0.2)
+    memory.learn(1, seq(*range(10, 20)), 10)
+    memory.learn(2, seq(*range(15, 30)), 15)
+    assert memory.edges[1] == {2: pytest.approx(9 / 29)}
+    memory.learn(3, seq(*range(0, 18)), 18)  # 1 adds nothing to 3: discarded
+    assert set(memory.models) == {2, 3}
+    assert memory.edges == {2: {}, 3: {}}  # 3 and 2: 5 / 35 alike, below 0.2
+    assert memory.members == {2: {2}, 3: {3}}
+
+
 def test_a_corrupted_cluster_splits_at_its_weakest_edge():
     """Two objects sharing a few views were joined by a weak edge; when the cluster grows past
     its limit the weak edge is cut and each object keeps its own (algorithm 6)."""

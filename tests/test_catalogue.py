@@ -23,7 +23,7 @@ from percept_memory.memory.catalogue.graph_of_views import (
     normalized_jmi,
     per_modalities_inclusion,
 )
-from percept_memory.memory.catalogue.learning import Learner, Parameters
+from percept_memory.memory.catalogue.learning import Change, Learner, Parameters
 from percept_memory.memory.types import annotations as a
 from percept_memory.memory.types.hypotheses import ImageROI
 
@@ -84,6 +84,7 @@ def test_a_new_view_merges_two_duplicates():
     memory.learn(3, seq(*range(5, 25)), 20)
     assert list(memory.members.values()) == [{1, 2, 3}]
     assert memory.classify(seq(0, 1, 2))[0] == (1, 1.0)
+    assert memory.history == [Change("merged", (1, 2), (1,))]
 
 
 def test_a_model_included_in_another_is_discarded():
@@ -120,6 +121,21 @@ def test_a_corrupted_cluster_splits_at_its_weakest_edge():
     memory.learn(4, seq(*b_views[4:]), 8)
     clusters = sorted(sorted(members) for members in memory.members.values())
     assert clusters == [[1, 3], [2, 4]]
+    assert memory.history == [Change("merged", (1, 2), (1,)), Change("split", (1,), (1, 2))]
+
+
+def test_a_model_learnt_again_notes_only_what_changed_net():
+    """A grown model is forgotten and learnt again: the entry it bridges falls apart and comes
+    together in one step, which is no change to note."""
+    memory = learner()
+    memory.learn(1, seq(*range(0, 10)), 10)
+    memory.learn(2, seq(*range(20, 30)), 10)
+    memory.learn(3, seq(*range(5, 25)), 20)
+    memory.history.clear()
+    memory.learn(3, seq(*range(5, 26)), 21)
+    assert list(memory.members.values()) == [{1, 2, 3}] and memory.history == []
+    memory.forget(3)
+    assert memory.history == [Change("split", (1,), (1, 2))]
 
 
 def test_singletons_beyond_the_limit_are_forgotten_shortest_first():
@@ -157,7 +173,7 @@ def test_the_index_stays_the_union_of_each_cluster(seed):
 LEARN_IN_A_PROCESS = """
 import numpy as np
 from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, node
-from percept_memory.memory.catalogue.learning import Learner, Parameters
+from percept_memory.memory.catalogue.learning import Change, Learner, Parameters
 rng = np.random.default_rng(0)
 memory = Learner(Parameters(max_singletons=10, high_inclusion=0.75, low_similarity=0.2))
 for i in range(400):  # 10 objects of 14 views, seen 6 at a time, some with a stray view

@@ -11,7 +11,7 @@ import pytest
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory.pipeline import request_rebuild
-from percept_memory.memory.schema import CATALOGUE, CATALOGUE_TRACKS
+from percept_memory.memory.schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS
 from percept_memory.queries import catalogue
 
 from .conftest import ingest_consolidated
@@ -19,26 +19,28 @@ from .conftest import ingest_consolidated
 
 @pytest.fixture(scope="module")
 def week(store):
-    week = kitchen_week.generate(days=2)
+    week = kitchen_week.generate(days=3)  # the third brings entries that merge and split
     ingest_consolidated(store, week.scenes)
     truth = {cluster.id: week.truth.object_at(i, j)
              for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
     return week, truth
 
 
-def stored_catalogue(store) -> tuple[list, list]:
-    """The models and tracks, object ids aside (a rebuild makes them afresh; models are named
-    by the stored clusters' ids)."""
+def stored_catalogue(store) -> tuple[list, list, list]:
+    """The models, tracks and merges and splits, object ids aside (a rebuild makes them
+    afresh; models are named by the stored clusters' ids)."""
     models = [{k: v for k, v in doc.items() if k != "object_id"}
               for doc in store.db[CATALOGUE].find().sort("_id")]
     tracks = sorted(({k: v for k, v in doc.items() if k != "_id"}
                      for doc in store.db[CATALOGUE_TRACKS].find()), key=lambda d: d["model"])
-    return models, tracks
+    history = [{k: v for k, v in doc.items() if k != "_id"}
+               for doc in store.db[CATALOGUE_HISTORY].find().sort("_id")]
+    return models, tracks, history
 
 
 def test_the_catalogue_rebuilt_from_the_scenes_equals_the_one_built_live(store, week):
     live = stored_catalogue(store)
-    assert live[0] and live[1]
+    assert live[0] and live[1] and live[2]
     request_rebuild(store)
     memory_pipeline(store).drain(timeout=600)
     assert stored_catalogue(store) == live
@@ -127,10 +129,25 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     assert ranked == catalogue.seen_before(store, _object_id(view))
     graph = client.get("/api/catalogue/graph", params={"map": "kitchen-week"})
     assert graph.json() == catalogue.similarity_graph(store, "kitchen-week")
+    for entry in listed.json()["entries"]:  # its own models and the links between them
+        models = {m["model"] for m in entry["graph"]["models"]}
+        assert len(models) == entry["models"] and set(entry["views"]) <= models
+        assert all({link["a"], link["b"]} <= models for link in entry["graph"]["links"])
+    changes = client.get("/api/catalogue/history", params={"map": "kitchen-week"}).json()
+    assert changes["changes"] == catalogue.history(store, "kitchen-week")
+    assert changes["changes"], "three days of the kitchen merge or split some entries"
+    times = [c["time"] for c in changes["changes"]]
+    assert times == sorted(times, reverse=True)
+    for change in changes["changes"]:
+        shape = (len(change["before"]), len(change["after"]))
+        assert shape[0] > 1 and shape[1] == 1 if change["kind"] == "merged" else (
+            shape[0] == 1 and shape[1] > 1)
+        assert set(change["current"]) <= set(change["after"])
     for bad, status in (("/api/catalogue/graph", 422),
                         ("/api/catalogue/seen-before/nothex", 422),
                         (f"/api/catalogue/seen-before/{'0' * 24}", 404),
-                        ("/api/catalogue?limit=0", 422)):
+                        ("/api/catalogue?limit=0", 422),
+                        ("/api/catalogue/history?limit=0", 422)):
         answer = client.get(bad)
         assert answer.status_code == status and "message" in answer.json()["error"]
 

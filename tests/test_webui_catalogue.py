@@ -1,4 +1,4 @@
-"""The catalogue page in a real headless Chromium, on two days of the kitchen week."""
+"""The catalogue page in a real headless Chromium, on three days of the kitchen week."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from .test_webui import ALL_LOADED, CHROMIUM, SCREENSHOTS
 
 @pytest.fixture(scope="module")
 def url(store):
-    ingest_consolidated(store, kitchen_week.generate(days=2).scenes)
+    ingest_consolidated(store, kitchen_week.generate(days=3).scenes)
     with served(create_app(store, Settings())) as url:
         yield url
 
@@ -40,12 +40,28 @@ def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):
         assert row.locator("img.crop").count() == len(first["views"])
         assert tab.evaluate(ALL_LOADED), "a crop did not decode"
         assert first["names"][0] in row.inner_text()
+        for entry in entries:  # each entry's models and links, drawn
+            drawing = tab.locator(f"#entry-{entry['entry']} svg.similarity")
+            assert drawing.locator("circle").count() == entry["models"]
+            assert drawing.locator("line").count() == len(entry["graph"]["links"])
+        changes = catalogue.history(store, limit=30)
+        assert changes, "three days of the kitchen merge or split some entries"
+        items = tab.locator("ol.changes li")
+        assert items.count() == len(changes)
+        for change, item in zip(changes, items.all(), strict=True):
+            assert item.get_attribute("class") == change["kind"]
+            assert item.locator("a[href^='#entry-']").count() == len(change["current"])
         SCREENSHOTS.mkdir(parents=True, exist_ok=True)
         tab.screenshot(path=str(SCREENSHOTS / "catalogue.png"), full_page=False)
+        current = tab.locator("ol.changes a[href^='#entry-']").first
+        current.focus()
+        tab.keyboard.press("Enter")
+        assert tab.evaluate("document.querySelector(location.hash) !== null")
         row.locator(f"a[href='/objects/{first['now']['object_id']}']").click()
         tab.wait_for_load_state("load")
         assert tab.url.endswith(f"/objects/{first['now']['object_id']}")
         tab.goto(f"{url}/catalogue?map=nowhere")
         assert "Nothing learnt yet" in tab.locator("table.catalogue").inner_text()
+        assert "No entry has merged or split" in tab.locator("ol.changes").inner_text()
         browser.close()
     assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

@@ -24,6 +24,7 @@ TERMS = "terms"  # the words clusters use, digits aside, with their trigrams (fo
 LABELS = "labels"  # labels of several words, by their words (objects by any word of a name)
 CATALOGUE = "catalogue"  # the partial models of the long-term catalogue (memory/catalogue/)
 CATALOGUE_TRACKS = "catalogue_tracks"  # per object, the partial model its views go to now
+CATALOGUE_HISTORY = "catalogue_history"  # the catalogue's entries that merged or split, when
 GRIDFS_FILES = "fs.files"
 GRIDFS_CHUNKS = "fs.chunks"
 
@@ -85,6 +86,7 @@ INDEXES: dict[str, list[IndexModel]] = {
     CATALOGUE: [IndexModel([("map", ASCENDING), ("entry", ASCENDING)], name="map_entry"),
                 IndexModel([("object_id", ASCENDING)], name="object")],
     CATALOGUE_TRACKS: [IndexModel([("map", ASCENDING)], name="map")],
+    CATALOGUE_HISTORY: [IndexModel([("map", ASCENDING), ("time", DESCENDING)], name="map_time")],
     # the next scenes each map's consolidator takes: in time order, those not held
     OUTBOX: [IndexModel([("map", ASCENDING), ("held", ASCENDING), ("time", ASCENDING),
                          ("_id", ASCENDING)], name="map_next")],

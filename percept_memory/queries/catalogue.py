@@ -18,7 +18,7 @@ from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, modalit
 from percept_memory.memory.catalogue.stage import NO_PIXELS, CatalogueStage
 from percept_memory.memory.catalogue.views import observation_views
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.schema import CATALOGUE, CATALOGUE_TRACKS, OBJECTS
+from percept_memory.memory.schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 
 OBJECT_FIELDS = {"name": 1, "names": 1, "state": 1, "region": 1, "position": 1, "last_seen": 1}
@@ -34,7 +34,7 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
     groups = list(store.db[CATALOGUE].aggregate([
         {"$match": match},
         {"$group": {"_id": {"map": "$map", "entry": "$entry"}, "models": {"$push": {
-            "id": "$_id", "length": "$length", "object": "$object_id"}}}}]))
+            "id": "$_id", "length": "$length", "object": "$object_id", "edges": "$edges"}}}}]))
     object_ids = list({m["object"] for g in groups for m in g["models"] if m["object"]})
     objects = {doc["_id"]: doc for doc in store.db[OBJECTS].find(
         {"_id": {"$in": object_ids}}, OBJECT_FIELDS)}
@@ -54,8 +54,12 @@ def _entry(group: dict, objects: dict, seen: dict) -> dict:
     last = max(tracks, key=lambda o: objects[o].get("last_seen") or 0, default=None)
     now = None if last is None else {"object_id": str(last), **{
         k: objects[last].get(k) for k in ("name", "state", "region", "position", "last_seen")}}
+    links = [{"a": str(m["id"]), "b": str(other), "weight": round(weight, 4)}
+             for m in models for other, weight in m["edges"] if m["id"] < other]
     return {"entry": str(group["_id"]["entry"]), "map": group["_id"]["map"],
             "models": len(models), "views": [str(m["id"]) for m in models[:VIEWS_SHOWN]],
+            "graph": {"models": [{"model": str(m["id"]), "length": m["length"]} for m in models],
+                      "links": links},
             "names": [name for name, _ in names.most_common() if name],
             "times_seen": sum(seen.get(o, 0) for o in tracks),
             "objects": [str(o) for o in tracks], "now": now}
@@ -90,6 +94,21 @@ def as_text(entry: dict) -> str:
     names = ", ".join(entry["names"][:3]) or "unnamed"
     return (f"{entry['entry']}  {names}: seen {entry['times_seen']} times, "
             f"{entry['models']} views; now {where} (object {now.get('object_id')})")
+
+
+def history(store: MemoryStore, map_name: str | None = None, limit: int = 50) -> list[dict]:
+    """The entries that merged or split (of one map), the newest first: when, which entries
+    before and after, the observation whose learning did it, and which entries after still
+    are entries now (a later change may have undone one)."""
+    match = {} if map_name is None else {"map": map_name}
+    changes = list(store.db[CATALOGUE_HISTORY].find(match).sort([("time", -1), ("_id", -1)])
+                   .limit(limit))
+    named = {e for c in changes for e in c["after"]}
+    current = set(store.db[CATALOGUE].distinct("entry", {"entry": {"$in": list(named)}}))
+    return [{"map": c["map"], "time": c["time"], "kind": c["kind"],
+             "cluster_id": str(c["cluster_id"]), "before": [str(e) for e in c["before"]],
+             "after": [str(e) for e in c["after"]],
+             "current": [str(e) for e in c["after"] if e in current]} for c in changes]
 
 
 def similarity_graph(store: MemoryStore, map_name: str, limit: int = 10_000) -> dict:

@@ -3,6 +3,7 @@ object was seen before (queries/catalogue.py), as JSON and as the catalogue page
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Any
 
 from bson import ObjectId
@@ -17,7 +18,28 @@ from percept_memory.queries import catalogue
 from .errors import READ_ERRORS
 from .html import page
 
+DRAWING_PX = 72
+CHANGES_SHOWN = 30
 CLUSTER_ID = Path(pattern="^[0-9a-f]{24}$", description="the cluster's id (24 hexadecimal digits)")
+
+
+def ring_drawing(graph: dict, size: float = DRAWING_PX) -> dict:
+    """An entry's partial models on a ring (at most a few: a complete graph stays readable),
+    each a disc as large as its observation was long, and its links as lines as thick as the
+    models are alike; in SVG user units."""
+    models = graph["models"]
+    centre, radius = size / 2, size / 2 - 12 if len(models) > 1 else 0.0
+    longest = max((m["length"] for m in models), default=1) or 1
+    at = {}
+    for i, m in enumerate(models):
+        angle = 2 * math.pi * i / max(len(models), 1) - math.pi / 2
+        at[m["model"]] = {"model": m["model"], "x": round(centre + radius * math.cos(angle), 1),
+                          "y": round(centre + radius * math.sin(angle), 1),
+                          "r": round(4 + 5 * m["length"] / longest, 1)}
+    lines = [{"a": at[link["a"]], "b": at[link["b"]], "weight": link["weight"],
+              "width": round(0.5 + 4 * link["weight"], 1)}
+             for link in graph["links"] if link["a"] in at and link["b"] in at]
+    return {"size": size, "models": list(at.values()), "links": lines}
 
 
 def catalogue_router(store: MemoryStore) -> APIRouter:
@@ -29,8 +51,13 @@ def catalogue_router(store: MemoryStore) -> APIRouter:
     async def catalogue_page(request: Request, map: str | None = None,
                              limit: Annotated[int, Query(ge=1, le=1000)] = 100
                              ) -> HTMLResponse:
-        found = await run_in_threadpool(catalogue.entries, store, map or None, limit)
-        return page(request, "catalogue.html", {"entries": found, "map_name": map})
+        found, changes = await run_in_threadpool(
+            lambda: (catalogue.entries(store, map or None, limit),
+                     catalogue.history(store, map or None, CHANGES_SHOWN)))
+        for entry in found:
+            entry["drawing"] = ring_drawing(entry["graph"])
+        return page(request, "catalogue.html", {"entries": found, "changes": changes,
+                                                "map_name": map})
 
     return router
 
@@ -47,9 +74,21 @@ def _api(store: MemoryStore) -> APIRouter:
     ) -> dict[str, Any]:
         """Each entry is an object learnt from its views, the most seen first: `views` (the
         clusters its models began with, the longest look first), `names`, the belief `objects`
-        whose tracks it gathers, `times_seen` (how often they were seen) and where it is
-        `now` (the one seen last)."""
+        whose tracks it gathers, `times_seen` (how often they were seen), where it is `now`
+        (the one seen last) and its `graph`: its partial models and the similarity links
+        between them."""
         return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}
+
+    @router.get("/history", summary="The catalogue's entries that merged or split",
+                responses=READ_ERRORS)
+    async def history(
+        map: Annotated[str | None, Query(description="only this map's changes")] = None,
+        limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+    ) -> dict[str, Any]:
+        """The newest first: `kind` (merged: several entries `before`, one `after`; split: one
+        before, the entries it went to after), the scene `time` (ns), the `cluster_id` whose
+        learning did it, and which entries after are `current` (a later change may undo one)."""
+        return {"changes": await run_in_threadpool(catalogue.history, store, map, limit)}
 
     @router.get("/graph", summary="The catalogue's similarity graph of a map",
                 responses=READ_ERRORS)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Hashable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 from .graph_of_views import Comparison, GraphOfViews
@@ -43,6 +44,17 @@ class Parameters:
 
 
 @dataclass(frozen=True, slots=True)
+class Change:
+    """Entries (clusters, by name) that became one (`merged`: several before, one after) or
+    several (`split`: one before, the parts it went to after): the learning people may want to
+    follow (Duceux figure 6.6: a later view merges duplicates, a cut separates two objects)."""
+
+    kind: str
+    before: tuple
+    after: tuple
+
+
+@dataclass(frozen=True, slots=True)
 class PartialModel:
     graph: GraphOfViews
     length: float  # how much was observed: the shortest singleton is forgotten first
@@ -63,6 +75,8 @@ class Learner:
         self._index: dict[str, set[Hashable]] = {}  # element -> clusters whose union holds it
         self._dissolved: set[Hashable] = set()  # clusters to recompute
         self.changed: set[Hashable] = set()  # models added, removed, relinked or moved
+        self.history: list[Change] = []  # entries merged or split, oldest first
+        self._before: dict[Hashable, Hashable] = {}  # see _noting_changes
 
     # --- classification (algorithm 3) ---------------------------------------------------------
 
@@ -98,8 +112,12 @@ class Learner:
 
     def learn(self, model_id: Hashable, graph: GraphOfViews, length: float) -> None:
         """Take in a partial model (again, when its observation grew)."""
-        if model_id in self.models:
-            self.forget(model_id)
+        with self._noting_changes():
+            if model_id in self.models:
+                self._recluster(self._remove(model_id))
+            self._learn(model_id, graph, length)
+
+    def _learn(self, model_id: Hashable, graph: GraphOfViews, length: float) -> None:
         ranked = self.classify(graph)
         self._add(model_id, PartialModel(graph, length))
         touched = {model_id}
@@ -128,12 +146,13 @@ class Learner:
                     learner._link(model_id, other, weight)
         learner._recluster(set(learner.models))
         learner.changed.clear()
+        learner.history.clear()
         return learner
 
     def forget(self, model_id: Hashable) -> None:
         """Remove a model and its edges (its cluster is recomputed)."""
-        touched = self._remove(model_id)
-        self._recluster(touched)
+        with self._noting_changes():
+            self._recluster(self._remove(model_id))
 
     # --- algorithm 5: the similarity graph --------------------------------------------------
 
@@ -192,6 +211,9 @@ class Learner:
         nodes = {m for c in dissolved for m in self.members[c]} | touched
         nodes = {m for m in nodes if m in self.models}
         self._dissolved = set()
+        for m in nodes:
+            if m in self.cluster_of:
+                self._before.setdefault(m, self.cluster_of[m])
         parts = [part for component in self._components(nodes)
                  for part in self._reduced(component)]
         kept = {name for part in parts if (name := min(part)) in dissolved
@@ -203,6 +225,23 @@ class Learner:
                 self._reshape_cluster(name, part)
             else:
                 self._make_cluster(part)
+
+    @contextmanager
+    def _noting_changes(self) -> Iterator[None]:
+        """Around one learning step: the entries it merged or split, net (a grown model is
+        forgotten and learnt again; only where its models end up counts), into `history`."""
+        self._before = {}  # model -> its cluster before the step, for those reclustered
+        yield
+        now_of: dict = {}  # a cluster now -> the clusters its models were in
+        went_to: dict = {}  # a cluster before -> the clusters its models are in now
+        for m, before in self._before.items():
+            if m in self.cluster_of:
+                now_of.setdefault(self.cluster_of[m], set()).add(before)
+                went_to.setdefault(before, set()).add(self.cluster_of[m])
+        self.history += [Change("merged", tuple(sorted(before)), (now,))
+                         for now, before in sorted(now_of.items()) if len(before) > 1]
+        self.history += [Change("split", (before,), tuple(sorted(now)))
+                         for before, now in sorted(went_to.items()) if len(now) > 1]
 
     def _components(self, nodes: set) -> Iterator[set]:
         todo = set(nodes)

@@ -11,7 +11,9 @@ cluster of its first observation (the same in a rebuild).
 Stored: `catalogue` holds one document per partial model {_id, map, object_id, elements,
 length, edges [[model, weight]], entry}: `entry` names its cluster (the catalogue entry, an
 object learnt); `catalogue_tracks` one per object {_id: object id, map, model, observations,
-last (the views of its last observation), seen, last_seen}. The learner of each map is kept in
+last (the views of its last observation), seen, last_seen}; `catalogue_history` the entries
+that merged or split {map, time, cluster_id (the observation whose learning did it), kind,
+before, after}. The learner of each map is kept in
 memory, read again when the stored version differs (another consolidator, an aborted
 transaction); in it, models are named by their ids' 12 bytes (bytes hash and compare in C,
 ObjectIds in Python: most of the learner's time went there).
@@ -27,7 +29,7 @@ from pymongo import DeleteOne, ReplaceOne
 from percept_memory.converters import registered_types
 
 from .. import documents as docs
-from ..schema import CATALOGUE, CATALOGUE_TRACKS, MAPS
+from ..schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, MAPS
 from ..store import MemoryStore
 from ..types import Annotation, Hypothesis
 from .graph_of_views import GraphOfViews
@@ -74,6 +76,7 @@ class CatalogueStage:
         self.params = params or home_parameters()
         self.models = store.db[CATALOGUE]
         self.tracks = store.db[CATALOGUE_TRACKS]
+        self.history = store.db[CATALOGUE_HISTORY]
         self.maps = store.db[MAPS]
         self._learners: dict[str, tuple[ObjectId | None, Learner]] = {}
 
@@ -102,7 +105,7 @@ class CatalogueStage:
         clusters = {doc["_id"]: doc for doc in found}
         tracks = {doc["_id"]: doc for doc in self.tracks.find(
             {"_id": {"$in": list({doc["object_id"] for doc in found})}}, session=session)}
-        touched = set()
+        touched, changes = set(), []
         for scene_id in scene_ids:
             scene = scenes.get(scene_id)
             for cluster_id in scene["clusters"] if scene else ():
@@ -114,9 +117,17 @@ class CatalogueStage:
                         "_id": doc["object_id"], "map": map_name, "seen": 0})
                     self._observe(learner, track, cluster_id, views, scene["timestamp"])
                     touched.add(track["_id"])
+                    changes += [{"map": map_name, "time": scene["timestamp"],
+                                 "cluster_id": cluster_id, "kind": change.kind,
+                                 "before": [ObjectId(e) for e in change.before],
+                                 "after": [ObjectId(e) for e in change.after]}
+                                for change in learner.history]
+                    learner.history.clear()
         if touched:
             self.tracks.bulk_write([ReplaceOne({"_id": t}, tracks[t], upsert=True)
                                     for t in sorted(touched)], session=session)
+        if changes:
+            self.history.insert_many(changes, session=session)
         self._write(learner, map_name, {t["model"].binary: t["_id"] for t in tracks.values()},
                     session)
 
@@ -167,5 +178,6 @@ class CatalogueStage:
         """Forget the map's catalogue (it is learnt again from the map's scenes)."""
         self.models.delete_many({"map": map_name})
         self.tracks.delete_many({"map": map_name})
+        self.history.delete_many({"map": map_name})
         self.maps.update_one({"_id": map_name}, {"$unset": {VERSION: ""}})
         self._learners.pop(map_name, None)

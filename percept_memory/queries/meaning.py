@@ -1,0 +1,84 @@
+"""What a text means, offline: the words of the vocabulary (`terms`, every word a cluster's
+labels, names, OCR texts and web-lookup titles used) nearest in meaning to a query, so that
+"something to drink" finds clusters whose words are "beverage", "juice" or "milk".
+
+Meanings are WordLlama's static token embeddings (a 16 MB table from Llama 3's input layer,
+trained for sentence similarity, 256 dimensions), whose weights and tokenizer ship inside
+the `wordllama` wheel: nothing is downloaded, ever. A text's vector is the pooled vectors of
+its tokens: cheap (tens of microseconds a word, no network of layers to run), weaker than a
+transformer, and only English-ish (what Llama 3's tokens know).
+
+Nothing is computed at ingest: the vocabulary of distinct words is small and grows slowly, so
+a query reads it (ids only) and embeds the words this process has not seen yet, kept for
+the next query.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from percept_memory.memory.schema import TERMS
+
+from .ops import Find, Plan
+
+MIN_SIMILARITY = 0.2  # cosine below which a word means something else (0.1-0.15: unrelated)
+MAX_MEANINGS = 8  # vocabulary words a text may stand for
+MAX_CACHED = 500_000  # words whose vectors a process keeps (1 kB each)
+
+
+class WordVectors:
+    """The model, loaded on first use, and the vectors of the words embedded so far.
+    Thread-safe: the web app answers queries from a thread pool."""
+
+    def __init__(self) -> None:
+        self._model = None
+        self._vectors: dict[str, np.ndarray] = {}
+        self._lock = threading.Lock()
+
+    def _loaded(self):
+        if self._model is None:
+            import wordllama
+            from wordllama import WordLlama
+
+            # The wheel holds weights/ and tokenizers/; WordLlama.load finds the weights in
+            # the package but looks for the tokenizer in tokenizer/ (singular), then in
+            # cache_dir/tokenizers/: pointing cache_dir at the package finds both there.
+            self._model = WordLlama.load(cache_dir=Path(wordllama.__file__).parent,
+                                         disable_download=True)
+        return self._model
+
+    def embed(self, texts: list[str]) -> np.ndarray:
+        """Unit vectors of texts (not kept: a query's text is asked once)."""
+        with self._lock:
+            return self._loaded().embed(texts, norm=True).astype(np.float32)
+
+    def of_words(self, words: list[str]) -> np.ndarray:
+        """Unit vectors of vocabulary words, those not seen before embedded in one batch."""
+        with self._lock:
+            new = [w for w in words if w not in self._vectors]
+            if new:
+                if len(self._vectors) + len(new) > MAX_CACHED:
+                    self._vectors.clear()
+                    new = words
+                vectors = self._loaded().embed(new, norm=True).astype(np.float32)
+                self._vectors.update(zip(new, vectors, strict=True))
+            return np.stack([self._vectors[w] for w in words]) if words else \
+                np.zeros((0, 1), np.float32)
+
+
+VECTORS = WordVectors()  # one per process
+
+
+def neighbours(text: str) -> Plan[dict[str, float]]:
+    """The vocabulary words nearest the text's meaning, with their cosine similarity (at
+    least MIN_SIMILARITY, the MAX_MEANINGS best)."""
+    vocabulary = [doc["_id"] for doc in (yield Find(TERMS, {}, {"_id": 1}))]
+    if not vocabulary:
+        return {}
+    scores = VECTORS.of_words(vocabulary) @ VECTORS.embed([text])[0]
+    best = np.argsort(-scores, kind="stable")[:MAX_MEANINGS]
+    return {vocabulary[i]: round(float(scores[i]), 3) for i in best
+            if scores[i] >= MIN_SIMILARITY}

@@ -10,6 +10,7 @@ import subprocess
 import sys
 import textwrap
 
+import numpy as np
 import pytest
 from bson import ObjectId
 from click.testing import CliRunner
@@ -19,6 +20,7 @@ from playwright.sync_api import expect
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
+from percept_memory.queries import meaning
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.webui.app import create_app
 
@@ -57,6 +59,20 @@ def test_the_word_vectors_load_from_the_wheel_alone(tmp_path):
     drink, tool = json.loads(done.stdout)
     assert drink > 0.4 > tool
     assert not any(tmp_path.iterdir()), "something was written to the home directory"
+
+
+def test_word_vectors_are_kept_and_score_as_fresh_ones(monkeypatch):
+    vectors = meaning.WordVectors()
+    monkeypatch.setattr(meaning, "MAX_CACHED", 4)
+    first = vectors.similarities(["milk", "water"], "a drink")
+    words = ["water", "tea", "milk", "tea"]  # one word new, one twice
+    fresh = vectors.embed(words) @ vectors.embed(["a drink"])[0]
+    again = vectors.similarities(words, "a drink")
+    assert np.allclose(again, fresh, atol=1e-6) and again[2] == first[0]
+    more = ["knife", "fork", "spoon", "plate"]  # over the bound: only these are kept
+    assert np.allclose(vectors.similarities(more, "cutlery"),
+                       vectors.embed(more) @ vectors.embed(["cutlery"])[0], atol=1e-6)
+    assert np.allclose(vectors.similarities(words, "a drink"), fresh, atol=1e-6)
 
 
 def test_something_to_drink_finds_the_drinks_only_by_meaning(store, item):

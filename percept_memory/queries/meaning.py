@@ -30,15 +30,17 @@ MAX_CACHED = 500_000  # words whose vectors a process keeps (1 kB each)
 
 
 class WordVectors:
-    """The model, loaded on first use, and the vectors of the words embedded so far.
-    Thread-safe: the web app answers queries from a thread pool."""
+    """The model, loaded on first use, and the vectors of the words embedded so far, as the
+    rows of one matrix (a query scores them all at once). Thread-safe: the web app answers
+    queries from a thread pool."""
 
     def __init__(self) -> None:
         self._model = None
-        self._vectors: dict[str, np.ndarray] = {}
+        self._row: dict[str, int] = {}
+        self._matrix = np.zeros((0, 0), np.float32)  # a row per word of _row
         self._lock = threading.Lock()
 
-    def _loaded(self):
+    def _embedded(self, texts: list[str]) -> np.ndarray:
         if self._model is None:
             import wordllama
             from wordllama import WordLlama
@@ -48,25 +50,28 @@ class WordVectors:
             # cache_dir/tokenizers/: pointing cache_dir at the package finds both there.
             self._model = WordLlama.load(cache_dir=Path(wordllama.__file__).parent,
                                          disable_download=True)
-        return self._model
+        return self._model.embed(texts, norm=True).astype(np.float32)
 
     def embed(self, texts: list[str]) -> np.ndarray:
         """Unit vectors of texts (not kept: a query's text is asked once)."""
         with self._lock:
-            return self._loaded().embed(texts, norm=True).astype(np.float32)
+            return self._embedded(texts)
 
-    def of_words(self, words: list[str]) -> np.ndarray:
-        """Unit vectors of vocabulary words, those not seen before embedded in one batch."""
+    def similarities(self, words: list[str], text: str) -> np.ndarray:
+        """The cosine similarity of each word to the text; the words not seen before are
+        embedded in one batch and kept."""
         with self._lock:
-            new = [w for w in words if w not in self._vectors]
+            new = [w for w in dict.fromkeys(words) if w not in self._row]
+            if len(self._row) + len(new) > MAX_CACHED:
+                self._row, new = {}, list(dict.fromkeys(words))
             if new:
-                if len(self._vectors) + len(new) > MAX_CACHED:
-                    self._vectors.clear()
-                    new = words
-                vectors = self._loaded().embed(new, norm=True).astype(np.float32)
-                self._vectors.update(zip(new, vectors, strict=True))
-            return np.stack([self._vectors[w] for w in words]) if words else \
-                np.zeros((0, 1), np.float32)
+                held = len(self._row)
+                vectors = self._embedded(new)
+                self._matrix = np.concatenate([self._matrix[:held] if held else vectors[:0],
+                                               vectors])
+                self._row.update((w, held + i) for i, w in enumerate(new))
+            rows = np.fromiter((self._row[w] for w in words), np.int64, len(words))
+            return (self._matrix @ self._embedded([text])[0])[rows]
 
 
 VECTORS = WordVectors()  # one per process
@@ -78,7 +83,7 @@ def neighbours(text: str) -> Plan[dict[str, float]]:
     vocabulary = [doc["_id"] for doc in (yield Find(TERMS, {}, {"_id": 1}))]
     if not vocabulary:
         return {}
-    scores = VECTORS.of_words(vocabulary) @ VECTORS.embed([text])[0]
+    scores = VECTORS.similarities(vocabulary, text)
     best = np.argsort(-scores, kind="stable")[:MAX_MEANINGS]
     return {vocabulary[i]: round(float(scores[i]), 3) for i in best
             if scores[i] >= MIN_SIMILARITY}

@@ -164,4 +164,5 @@ def test_the_search_box_understands_meaning(page, url, item):  # noqa: F811 (pag
     assert {item[i] for i in found[:10]} <= DRINKS
     scores = [float(s) for s in hits.locator(".score").all_inner_texts()]
     assert len(scores) == len(found) and scores == sorted(scores, reverse=True)
+    page.goto(f"{url}/search?text=something+to+drink&meaning=true&limit=8")
     shot(page, "search-meaning")

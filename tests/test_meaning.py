@@ -85,6 +85,14 @@ def test_something_to_drink_finds_the_drinks_only_by_meaning(store, item):
     assert scores == sorted(scores, reverse=True) and 0 < scores[-1] < 1
 
 
+def test_the_meaning_is_of_the_words_alone(store, item):
+    """The text's words mean it: quotes, punctuation and case do not change what it finds."""
+    engine = QueryEngine(store)
+    plain = engine.clusters(text="something to drink", meaning=True, limit=5)
+    odd = engine.clusters(text='"Something" to DRINK?!', meaning=True, limit=5)
+    assert odd.items == plain.items
+
+
 def test_something_sweet_finds_the_chocolate(store, item):
     found = QueryEngine(store).clusters(text="something sweet", meaning=True).items
     assert found and {item[h.id] for h in found} == {"milka"}

@@ -35,7 +35,7 @@ def compiled(f: ClusterFilter) -> Plan[tuple[dict, dict | None]]:
     if not text.words:
         raise QueryError(f"the text {f.text!r} has no words to search for")
     expansions = yield from expand(text.words)
-    if f.meaning and (meant := (yield from meaning.neighbours(f.text))):
+    if f.meaning and (meant := (yield from meaning.neighbours(" ".join(text.words)))):
         expansions[MEANING] = meant
     return cluster_filter(f, text, expansions), expansions
 

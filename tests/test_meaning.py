@@ -20,6 +20,7 @@ from playwright.sync_api import expect
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
+from percept_memory.memory.types import Classification, Cluster, Scene
 from percept_memory.queries import meaning
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.webui.app import create_app
@@ -174,3 +175,13 @@ def test_the_search_box_understands_meaning(page, url, item):  # noqa: F811 (pag
     assert len(scores) == len(found) and scores == sorted(scores, reverse=True)
     page.goto(f"{url}/search?text=something+to+drink&meaning=true&limit=8")
     shot(page, "search-meaning")
+
+
+def test_a_word_stored_after_a_query_is_meant_by_the_next(store, item):
+    """The vocabulary a process keeps is read again once it grew (last: it adds a cluster)."""
+    engine = QueryEngine(store)
+    before = engine.clusters(text="lemon", meaning=True, limit=500).items
+    (stored,) = store.put_scenes([Scene(timestamp=1, robot="probe", clusters=[Cluster(
+        annotations=[Classification(class_name="lemonade", source="test")])])])
+    after = engine.clusters(text="lemon", meaning=True, limit=500).items
+    assert stored.cluster_ids[0] in {h.id for h in after} - {h.id for h in before}

@@ -4,6 +4,7 @@ the CLI and the search page, on three generated kitchen days."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import subprocess
@@ -16,13 +17,16 @@ from bson import ObjectId
 from click.testing import CliRunner
 from fastapi.testclient import TestClient
 from playwright.sync_api import expect
+from pymongo import AsyncMongoClient
 
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
+from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.settings import Settings
+from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import Classification, Cluster, Scene
 from percept_memory.queries import meaning
-from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated, served
@@ -92,6 +96,20 @@ def test_the_meaning_is_of_the_words_alone(store, item):
     plain = engine.clusters(text="something to drink", meaning=True, limit=5)
     odd = engine.clusters(text='"Something" to DRINK?!', meaning=True, limit=5)
     assert odd.items == plain.items
+
+
+def test_the_async_engine_means_the_same(store, item, mongo_uri):
+    async def ask():
+        client = AsyncMongoClient(mongo_uri, **CLIENT_OPTIONS)
+        try:
+            engine = AsyncQueryEngine(AsyncMemoryStore(client, store.db.name,
+                                                       gridfs_threshold=1024))
+            return await engine.clusters(text="something to drink", meaning=True, limit=20)
+        finally:
+            await client.close()
+
+    assert asyncio.run(ask()) == QueryEngine(store).clusters(text="something to drink",
+                                                             meaning=True, limit=20)
 
 
 def test_something_sweet_finds_the_chocolate(store, item):

@@ -81,9 +81,11 @@ _VOCABULARIES: dict[str, tuple[int, list[str]]] = {}  # terms' namespace -> (cou
 def vocabulary() -> Plan[list[str]]:
     """Every word of the vocabulary, read again only when the count of words changed: words
     are only ever added, so the same count means the same words (the count is the
-    collection's own, read in a millisecond, where reading 50,000 words takes ~100 ms)."""
-    (stats,) = yield Aggregate(TERMS, [{"$collStats": {"count": {}}}])
-    namespace, count = stats["ns"], stats.get("count", 0)
+    collection's own, read in a millisecond, where reading 50,000 words takes ~100 ms; one
+    document per shard on a sharded cluster)."""
+    shards = yield Aggregate(TERMS, [{"$collStats": {"count": {}}}])
+    namespace = shards[0]["ns"] if shards else TERMS
+    count = sum(shard.get("count", 0) for shard in shards)
     known = _VOCABULARIES.get(namespace)
     if known is None or known[0] != count:
         known = count, [doc["_id"] for doc in (yield Find(TERMS, {}, {"_id": 1}))]

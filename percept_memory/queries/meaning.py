@@ -2,11 +2,12 @@
 labels, names, OCR texts and web-lookup titles used) nearest in meaning to a query, so that
 "something to drink" finds clusters whose words are "beverage", "juice" or "milk".
 
-Meanings are WordLlama's static token embeddings (a 16 MB table from Llama 3's input layer,
-trained for sentence similarity, 256 dimensions), whose weights and tokenizer ship inside
-the `wordllama` wheel: nothing is downloaded, ever. A text's vector is the pooled vectors of
-its tokens: cheap (tens of microseconds a word, no network of layers to run), weaker than a
-transformer, and only English-ish (what Llama 3's tokens know).
+Meanings are WordLlama's static token embeddings (`l2_supercat`: the token-embedding tables of
+LLaMA 2 70B and Phi-3 medium, concatenated and trained for general-purpose text embedding;
+a 16 MB table, 256 dimensions), whose weights and tokenizer ship inside the `wordllama`
+wheel: nothing is downloaded, ever. A text's vector is the pooled vectors of its tokens:
+cheap (tens of microseconds a word, no layers to run), weaker than a transformer, and
+English above all.
 
 Nothing is computed at ingest: the vocabulary of distinct words is small and grows slowly, so
 a query reads it (when it grew) and embeds the words this process has not seen yet, kept for

@@ -29,7 +29,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("export.py", ["--clusters", "300", "--sizes", "100,300", "--formats", "imagefolder"],
      {"exports"}),
     ("similarity.py", ["--days", "1", "--every", "10", "--vectors", "3000", "--scenes", "10"],
-     {"kitchen_week", "at_scale", "ingest"}),
+     {"kitchen_week", "robosherlock_ground_truth", "meaning", "at_scale", "ingest"}),
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",

@@ -27,7 +27,8 @@ from .ops import Aggregate, Find, Plan
 
 MIN_SIMILARITY = 0.2  # cosine below which a word means something else (0.1-0.15: unrelated)
 MAX_MEANINGS = 8  # vocabulary words a text may stand for
-MAX_CACHED = 500_000  # words whose vectors a process keeps (1 kB each)
+MAX_CACHED = 500_000  # words whose vectors a process keeps (1 kB each); a vocabulary larger
+# than this would be embedded anew by every query (seconds)
 
 
 class WordVectors:

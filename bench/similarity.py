@@ -5,26 +5,41 @@
    share of the ten found that show the same catalogue item (the three identical cups count
    as one item), per descriptor and combined (every descriptor). Also the index's build from
    MongoDB (reading and describing every cluster, crops decoded).
-2. Latency at scale: an index of N synthetic rows (random unit vectors of the largest crop
+2. Precision on RoboSherlock's own ground truth: the PnP09 dump's persistent objects, each
+   labelled with its true class (GroundTruth), imported as `pmem import` does: from each
+   object that has another of its class, similar_to(k=10) per descriptor (the dump's Caffe
+   CNN vectors, VFH, HS colour histograms, Hu moments) and combined. Only 9 objects of 7
+   classes: two classes have two each, so each such query has exactly one right answer
+   among 8 others, precision@10 is at most 0.1 and the partner's rank says more.
+3. Meaning: a table of text queries on the kitchen week, each with the catalogue items it
+   should find (decided from the catalogue, before running), and the share of the first ten
+   results that show one of them (and the items of the first 50), spelt (today's exact and
+   misspelt words) and by meaning (queries/meaning.py); the cost of a meaning query, cold
+   (the model loaded) and warm, and with a vocabulary of --words more words.
+4. Latency at scale: an index of N synthetic rows (random unit vectors of the largest crop
    descriptor's size, 144; four regions, two robots, a week of times) built straight into
    the index (not through MongoDB: storing a million clusters is another benchmark's job),
    its build time and size on disk; p50/p95 of a filtered search (one region and one day:
    about 1/28 of the rows) and of an unfiltered one, and recall@10 against exact search.
    Random vectors are the hard case for a graph index; real descriptors cluster.
-3. Ingest: storing scenes does no index work (the index catches up from MongoDB when it is
+5. Ingest: storing scenes does no index work (the index catches up from MongoDB when it is
    next asked, memory/similarity.py), so ingest is not slowed at all; what it costs instead
    is the catch-up, measured here as the refresh after storing synthetic scenes in process,
-   and as the slowdown ingest would see if that work were done inline.
+   and as the slowdown ingest would see if that work were done inline. Meaning search does
+   no ingest work either: its word vectors are computed when a query first meets a word.
 
-Usage: python bench/similarity.py [--days N] [--every N] [--vectors N] [--scenes N]
+Usage: python bench/similarity.py [--days N] [--every N] [--vectors N] [--scenes N] [--words N]
 """
 
 from __future__ import annotations
 
 import argparse
+import string
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +48,16 @@ from ingest import kitchen_image, scenes
 from scratch import print_json, scratch_store
 
 from percept_memory.demo import kitchen_week
+from percept_memory.ingest.robosherlock import read_dump
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory.schema import TERMS
+from percept_memory.memory.search_keys import trigrams
 from percept_memory.memory.settings import collect_less
 from percept_memory.memory.similarity import Entry, RowFilter, SimilarityIndex
+from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types import GroundTruth
+from percept_memory.queries import meaning
+from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.similar import Similarity
 
@@ -44,41 +66,141 @@ CHUNK = 50_000  # rows added to the index at a time
 REGIONS = ["counter_top_sink", "counter_top_island", "table", "shelf"]
 LATENCY_TARGET_MS = 10.0
 SLOWDOWN_TARGET = 0.10
+PNP09 = Path(__file__).resolve().parents[2] / \
+    "shared/data/robosherlock/mongodump/PnP09ObjSymbolicGTFixed"
+DRINKS = ["juice", "milk", "tea", "water"]
+MEANINGS = {  # a text -> the catalogue items (kitchen_week.CATALOGUE) it should find
+    "something to drink": DRINKS,
+    "a drink": DRINKS,
+    "beverages": DRINKS,
+    "sweets": ["milka"],
+    "something sweet": ["milka", "nutella"],
+    "candy": ["milka"],
+    "fruit": ["apple"],
+    "crisps": ["pringles"],
+    "sauce": ["ketchup"],
+    "dairy": ["milk"],
+    "for cleaning dishes": ["fairy", "sponge"],
+    "washing-up liquid": ["fairy"],
+    "tableware": ["bowl", "cup", "mug", "plate"],
+    "something to eat from": ["bowl", "plate"],
+}
 
 
-def precision(days: int, every: int, folder: Path) -> dict:
+@contextmanager
+def kitchen(days: int) -> Iterator[tuple[MemoryStore, dict[ObjectId, str]]]:
+    """The kitchen week in a scratch store, and cluster id -> the catalogue item it shows."""
     week = kitchen_week.generate(days=days)
     with scratch_store() as store:
         results = store.put_scenes(week.scenes)
-        item = {cluster_id: kitchen_week.item_of(week.truth.object_at(i, j)).key
-                for i, stored in enumerate(results) for j, cluster_id in
-                enumerate(stored.cluster_ids)}
-        index = SimilarityIndex(store, folder / "week")
-        start = time.perf_counter()
-        index.refresh()
-        build_s = time.perf_counter() - start
-        search = Similarity(store, index=index)
-        starts = list(item)[::every]
-        per = {}
-        for name in [*index.names(), "combined"]:
-            chosen = [] if name == "combined" else [name]
-            scores, took = [], []
-            for cluster_id in starts:
-                begin = time.perf_counter()
-                try:
-                    found = search.similar_to(cluster=cluster_id, k=10, descriptor=chosen).items
-                except QueryError:
-                    continue  # this cluster has no such descriptor
-                took.append(time.perf_counter() - begin)
-                scores.append(np.mean([item[h.id] == item[cluster_id] for h in found]))
-            per[name] = {"precision_at_10": round(float(np.mean(scores)), 3),
-                         "queries": len(scores),
-                         "p95_ms_similar_to": round(float(np.percentile(took, 95)) * 1e3, 2)}
-    return {"days": days, "clusters": len(item), "items": len(set(item.values())),
+        yield store, {cluster_id: kitchen_week.item_of(week.truth.object_at(i, j)).key
+                      for i, stored in enumerate(results)
+                      for j, cluster_id in enumerate(stored.cluster_ids)}
+
+
+def precision(store: MemoryStore, item: dict[ObjectId, str], every: int, folder: Path) -> dict:
+    index = SimilarityIndex(store, folder / "week")
+    start = time.perf_counter()
+    index.refresh()
+    build_s = time.perf_counter() - start
+    search = Similarity(store, index=index)
+    starts = list(item)[::every]
+    per = {}
+    for name in [*index.names(), "combined"]:
+        chosen = [] if name == "combined" else [name]
+        scores, took = [], []
+        for cluster_id in starts:
+            begin = time.perf_counter()
+            try:
+                found = search.similar_to(cluster=cluster_id, k=10, descriptor=chosen).items
+            except QueryError:
+                continue  # this cluster has no such descriptor
+            took.append(time.perf_counter() - begin)
+            scores.append(np.mean([item[h.id] == item[cluster_id] for h in found]))
+        per[name] = {"precision_at_10": round(float(np.mean(scores)), 3),
+                     "queries": len(scores),
+                     "p95_ms_similar_to": round(float(np.percentile(took, 95)) * 1e3, 2)}
+    return {"clusters": len(item), "items": len(set(item.values())),
             "observations_per_item": dict(Counter(item.values()).most_common()),
             "index_build_from_mongodb_s": round(build_s, 2),
             "index_build_clusters_per_s": round(len(item) / build_s),
             "per_descriptor": per}
+
+
+def robosherlock_truth(folder: Path) -> dict:
+    """Same class as RoboSherlock's ground truth says, among the PnP09 objects."""
+    with scratch_store() as store:
+        store.put_scenes(list(read_dump(PNP09)))
+        truth = {cluster_id: annotation.class_name
+                 for cluster_id, cluster in store.get_clusters(
+                     [d["_id"] for d in store.clusters.find({}, {"_id": 1})]).items()
+                 for annotation in cluster.annotations if isinstance(annotation, GroundTruth)}
+        index = SimilarityIndex(store, folder / "robosherlock")
+        index.refresh()
+        search = Similarity(store, index=index)
+        paired = [c for c in truth if list(truth.values()).count(truth[c]) > 1]
+        per = {}
+        for name in [*index.names(), "combined"]:
+            chosen = [] if name == "combined" else [name]
+            ranks, precisions = [], []
+            for cluster_id in paired:
+                try:
+                    found = search.similar_to(cluster=cluster_id, k=10, descriptor=chosen).items
+                except QueryError:
+                    continue
+                same = [truth.get(h.id) == truth[cluster_id] for h in found]
+                ranks.append(same.index(True) + 1 if True in same else None)
+                precisions.append(sum(same) / 10)
+            per[name] = {"precision_at_10": round(float(np.mean(precisions)), 3),
+                         "rank_of_the_same_class": ranks,
+                         "precision_at_1": round(float(np.mean([r == 1 for r in ranks])), 3)}
+    return {"objects": len(truth), "classes": len(set(truth.values())),
+            "queries": len(paired), "others_per_query": len(truth) - 1,
+            "best_possible_precision_at_10": 0.1, "per_descriptor": per}
+
+
+def meanings(store: MemoryStore, item: dict[ObjectId, str], extra_words: int) -> dict:
+    """The meaning table, then what a meaning query costs."""
+    engine = QueryEngine(store)
+    table, took = {}, []
+    for text, expected in MEANINGS.items():
+        row = {"expected": expected}
+        for mode, by_meaning in (("spelt", False), ("meaning", True)):
+            begin = time.perf_counter()
+            found = [item[h.id] for h in engine.clusters(text=text, meaning=by_meaning,
+                                                         limit=50).items]
+            if by_meaning:
+                took.append(time.perf_counter() - begin)
+            right = sum(key in expected for key in found[:10])
+            row[mode] = {"found": len(found[:10]),
+                         "precision_at_10": round(right / len(found[:10]), 2) if found else None,
+                         "items_in_first_10": dict(Counter(found[:10]).most_common()),
+                         "items_in_first_50": dict(Counter(found).most_common())}
+        row["words_meant"] = engine.runner.run(meaning.neighbours(text))
+        table[text] = row
+    summary = {mode: {
+        "mean_precision_at_10_empty_as_0": round(float(np.mean(
+            [row[mode]["precision_at_10"] or 0 for row in table.values()])), 3),
+        "queries_finding_nothing": sum(not row[mode]["found"] for row in table.values())}
+        for mode in ("spelt", "meaning")}
+    known = set(store.db[TERMS].distinct("_id"))
+    rng = np.random.default_rng(0)
+    letters = np.array(list(string.ascii_lowercase))
+    extra = {"".join(rng.choice(letters, int(rng.integers(4, 10)))) for _ in range(extra_words)}
+    store.db[TERMS].insert_many([{"_id": w, "grams": trigrams(w)} for w in extra - known])
+    large = []
+    for _ in range(6):
+        begin = time.perf_counter()
+        engine.clusters(text="something to drink", meaning=True, limit=10)
+        large.append(time.perf_counter() - begin)
+    return {"queries": table, "summary": summary,
+            "cost": {"vocabulary_words": len(known),
+                     "first_query_s_loading_the_model": round(took[0], 3),
+                     "warm_query_ms": {"p50": round(float(np.percentile(took[1:], 50)) * 1e3, 1),
+                                       "p95": round(float(np.percentile(took[1:], 95)) * 1e3, 1)},
+                     "with_more_words": store.db[TERMS].count_documents({}),
+                     "first_query_s_embedding_them": round(large[0], 3),
+                     "then_query_ms_p50": round(float(np.median(large[1:])) * 1e3, 1)}}
 
 
 def at_scale(count: int, folder: Path, queries: int = 200) -> dict:
@@ -167,12 +289,17 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=3, help="query from every n-th cluster")
     parser.add_argument("--vectors", type=int, default=1_000_000)
     parser.add_argument("--scenes", type=int, default=300)
+    parser.add_argument("--words", type=int, default=50_000,
+                        help="words added to the vocabulary to see what a large one costs")
     args = parser.parse_args()
     collect_less()
-    with tempfile.TemporaryDirectory() as folder:
+    with tempfile.TemporaryDirectory() as folder, kitchen(args.days) as (store, item):
         print_json({
             "benchmark": "similarity",
-            "kitchen_week": precision(args.days, args.every, Path(folder)),
+            "kitchen_week": {"days": args.days,
+                             **precision(store, item, args.every, Path(folder))},
+            "robosherlock_ground_truth": robosherlock_truth(Path(folder)),
+            "meaning": meanings(store, item, args.words),
             "at_scale": at_scale(args.vectors, Path(folder)),
             "ingest": ingest_cost(args.scenes, Path(folder)),
         })

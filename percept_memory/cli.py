@@ -642,6 +642,7 @@ def reindex(settings: Settings) -> None:
 SUBJECTS = ("x", "format")  # the fields that are a command's argument: what it is about
 EXAMPLES = {
     "clusters": ("pmem query clusters --text cereal --region shelf --limit 5",
+                 'pmem query clusters --text "something to drink" --meaning --limit 5',
                  "pmem query clusters --near 1.9,4.6,0.8 --k 3 --json"),
     "where_is": ('pmem query where-is "the ketchup" --limit 1',),
     "where_was": ("pmem query where-was pringles --after 2024-03-05",),

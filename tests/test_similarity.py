@@ -317,3 +317,38 @@ def test_more_like_this_shows_ranked_crops(page, url, day):  # noqa: F811 (page:
 
     page.goto(f"{url}/similar?cluster={start}&k=500")
     expect(page.locator("main")).to_contain_text("less than or equal to 100")
+
+
+def _found_items(tab, item) -> list[str]:
+    """The items shown on a /similar page, best first."""
+    hits = tab.locator("ol.similar li.hit")
+    expect(hits).to_have_count(10)
+    return [item[ObjectId(i)] for i in hits.evaluate_all("els => els.map(e => e.dataset.cluster)")]
+
+
+def test_more_like_this_from_the_scene_and_object_pages(page, url, store, day):  # noqa: F811 (page)
+    """Every cluster of a scene page, an object page (from its latest observation) and each
+    crop of its history lead to the crops that look like them."""
+    item = day[1]
+    scene = store.db[SCENES].find_one({"clusters.2": {"$exists": True}})
+    cluster_id = scene["clusters"][2]
+    page.goto(f"{url}/scenes/{scene['_id']}")
+    page.locator("article.cluster").nth(2).get_by_role("link", name="more like this").click()
+    expect(page).to_have_url(f"{url}/similar?cluster={cluster_id}")
+    assert _found_items(page, item)[:3] == [item[cluster_id]] * 3
+
+    object_id = store.get_cluster(cluster_id).object_id
+    latest = store.db["objects"].find_one({"_id": object_id})["last_cluster"]
+    page.goto(f"{url}/objects/{object_id}")
+    page.locator(".overview > a.more-like-this").click()
+    expect(page).to_have_url(f"{url}/similar?object={object_id}")
+    expect(page.locator(".similar-start a").first).to_have_attribute("href",
+                                                                      f"/clusters/{latest}")
+    assert _found_items(page, item)[:3] == [item[cluster_id]] * 3
+
+    page.go_back()
+    oldest = page.locator("ol.crops li").last
+    shown = oldest.locator("a").first.get_attribute("href").removeprefix("/clusters/")
+    oldest.get_by_role("link", name="more like this").click()
+    expect(page).to_have_url(f"{url}/similar?cluster={shown}")
+    assert _found_items(page, item)[0] == item[ObjectId(shown)]

@@ -7,6 +7,7 @@ import math
 from percept_memory.memory.schema import CLUSTERS
 from percept_memory.memory.search_keys import AXES, EVERYWHERE
 
+from . import meaning
 from .compile import (
     cluster_filter,
     conjunction,
@@ -18,7 +19,7 @@ from .model import ClusterFilter, ClusterQuery
 from .ops import Aggregate, Count, Find, Plan, QueryError
 from .results import ClusterHit, ClusterPage
 from .space import shells, squared_distance
-from .text import TextQuery, expand, score_expression
+from .text import MEANING, TextQuery, expand, score_expression
 
 RANK_WINDOW = 300  # relevance ranks the most recent this many text matches
 HIT_FIELDS = {"scene_id": 1, "object_id": 1, **{f"search.{key}": 1 for key in (
@@ -34,6 +35,8 @@ def compiled(f: ClusterFilter) -> Plan[tuple[dict, dict | None]]:
     if not text.words:
         raise QueryError(f"the text {f.text!r} has no words to search for")
     expansions = yield from expand(text.words)
+    if f.meaning and (meant := (yield from meaning.neighbours(" ".join(text.words)))):
+        expansions[MEANING] = meant
     return cluster_filter(f, text, expansions), expansions
 
 

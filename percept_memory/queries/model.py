@@ -326,6 +326,9 @@ class ClusterFilter(Strict):
 
     text: Annotated[str, StringConstraints(max_length=MAX_TEXT)] | None = Field(
         default=None, description='words and "quoted phrases"; misspellings are tolerated')
+    meaning: bool = Field(default=False, description=(
+        "with text: also find the words the text means (\"something to drink\": beverage, "
+        "juice, milk), ranked after exact words"))
     region: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="region names (any of them)")
     robot: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
@@ -347,6 +350,8 @@ class ClusterFilter(Strict):
             raise ValueError("give `at`, or `after` and/or `before`, not both")
         if None not in (self.after, self.before) and self.after > self.before:
             raise ValueError("`after` is later than `before`")
+        if self.meaning and not self.text:
+            raise ValueError("meaning needs text")
         if self.text is not None and len(words(self.text)) > MAX_WORDS:
             raise ValueError(f"the text has more than {MAX_WORDS} words")
         return self

@@ -6,7 +6,8 @@ index of the vocabulary (two words within d edits share most of their trigrams),
 distance decides (rapidfuzz). Words with a digit (codes, quantities) match exactly: one
 character off names another thing. A phrase must appear as consecutive words in one label or
 text. A cluster's score is the sum over the query's words of the best match it has: 1 for the word
-itself, less for a neighbour, by how many edits away it is.
+itself, less for a neighbour, by how many edits away it is; by meaning (meaning.py), plus the
+similarity (0..1, a related word ~0.2-0.6) of its word nearest the text's meaning.
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ class TextQuery:
 
 
 Expansions = dict[str, dict[str, float]]
-"""Query word -> the terms it matches, with how well (1 = the word itself)."""
+"""Query word -> the terms it matches, with how well (1 = the word itself); and, in a search
+by meaning, MEANING -> the terms nearest the whole text's meaning, by their similarity."""
+MEANING = "~meaning"  # not a word: words are letters and digits
 
 
 def max_edits(word: str) -> int:

@@ -51,6 +51,8 @@ def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):
         for change, item in zip(changes, items.all(), strict=True):
             assert item.get_attribute("class") == change["kind"]
             assert item.locator("a[href^='#entry-']").count() == len(change["current"])
+            pictures = len(change["before"]) + len(change["after"]) + 1  # and the observation
+            assert item.locator("img.crop").count() == pictures
         SCREENSHOTS.mkdir(parents=True, exist_ok=True)
         tab.screenshot(path=str(SCREENSHOTS / "catalogue.png"), full_page=False)
         current = tab.locator("ol.changes a[href^='#entry-']").first

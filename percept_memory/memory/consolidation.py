@@ -16,7 +16,9 @@ two observations of one object are (identity.Calibration), kept with the belief 
 
 Identity decides on the evidence a cluster arrived with (documents.ARRIVED_KEY): annotations
 appended later by enrichment name the object (naming.py) but never change a past decision, so
-a rebuild decides exactly as the live pipeline did. Names come from naming.py.
+a rebuild decides exactly as the live pipeline did. Names come from naming.py. A cluster a
+person rejected (types/curation.py) is no object: it is left out, and a rejection made after
+its scene was consolidated asks for the map to be rebuilt (memory/curation.py).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
+from .types.curation import rejected
 from .view import View
 
 MAX_UNSEEN_CANDIDATES = 32
@@ -129,12 +132,15 @@ class Consolidation:
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
                        [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
                  for o, in_view in believed if o["last_cluster"] in seen_as]
-        new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
+        kept = [c for c in scene.clusters if not rejected(c.annotations)]
+        new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
         decisions = resolve(new, known, self.params, calibration)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
-        clusters = {c.id: c for c in scene.clusters}
-        objects, events, links = [], [], []
+        clusters = {c.id: c for c in kept}
+        objects, events = [], []
+        links = [UpdateOne({"_id": c.id}, {"$unset": {"object_id": ""}})
+                 for c in scene.clusters if c.id not in clusters and c.object_id is not None]
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
             cluster = None if unseen else clusters.get(decision.key)

@@ -1,0 +1,142 @@
+"""Corrections by people: relabel a cluster, reject it, undo either; and the audit of them.
+
+    relabel(store, cluster_id, "mug", author="ana")     # the object seen here is a mug
+    reject(store, cluster_id, author="ana")             # no object is here
+    undo(store, cluster_id, correction_id, author="bo") # takes one back (itself recorded)
+    audit(store)                                        # every correction, newest first
+
+Each is an annotation appended to the cluster (types/curation.py), beside what annotators said,
+in one transaction with what it changes in the belief: the names of the cluster's object follow
+at once (store.py renames it, naming.py weighs the correction above everything else). A
+correction that changes whether the cluster is an object at all (a rejection, or taking one
+back) also asks, in the same transaction, for its map's belief to be rebuilt by the memory
+pipeline (pipeline.py): identity then decides the map's scenes again without (or with) it.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from datetime import UTC, datetime
+
+from bson import ObjectId
+from pydantic import TypeAdapter, ValidationError
+
+from .schema import CLUSTERS, MAPS, SCENES
+from .store import MemoryStore
+from .types import Cluster, Rejection, Relabel, Undo, timestamp_from_datetime
+from .types.curation import HUMAN, Author, Correction, in_force, rejected
+
+AUDIT_LIMIT = 1000
+KINDS = {"pm.annotation.Relabel": "relabel", "pm.annotation.Rejection": "reject",
+         "pm.annotation.Undo": "undo"}
+_author = TypeAdapter(Author)
+
+
+class NotCorrectable(ValueError):
+    """A correction that cannot be made: the message says why (a person can fix it)."""
+
+
+def relabel(store: MemoryStore, cluster_id: ObjectId, class_name: str, author: str) -> Relabel:
+    """Say what the object seen in the cluster is (a class or a name)."""
+    return _append(store, cluster_id, lambda: Relabel(class_name=class_name, **_who(author)))
+
+
+def reject(store: MemoryStore, cluster_id: ObjectId, author: str, reason: str = "") -> Rejection:
+    """Say the cluster's detection is wrong: no object is here."""
+    return _append(store, cluster_id, lambda: Rejection(reason=reason, **_who(author)))
+
+
+def undo(store: MemoryStore, cluster_id: ObjectId, correction_id: ObjectId,
+         author: str) -> Undo:
+    """Take back a correction of the cluster that is in force."""
+    cluster = store.get_cluster(cluster_id)
+    if not any(isinstance(a, Relabel | Rejection) and a.id == correction_id
+               for a in in_force(cluster.annotations)):
+        raise NotCorrectable(f"cluster {cluster_id} has no correction {correction_id} in force "
+                             "to undo")
+    return _append(store, cluster_id, lambda: Undo(undoes=correction_id, **_who(author)))
+
+
+def _who(author: str) -> dict:
+    try:
+        name = _author.validate_python(author)
+    except ValidationError:
+        raise NotCorrectable("author: who makes a correction is named (1 to 100 "
+                             "characters)") from None
+    return {"author": name, "time": timestamp_from_datetime(datetime.now(UTC))}
+
+
+def _append(store: MemoryStore, cluster_id: ObjectId, make) -> Correction:
+    try:
+        correction = make()
+    except ValidationError as error:
+        problem = error.errors(include_url=False, include_input=False)[0]
+        field = ".".join(map(str, problem["loc"]))
+        raise NotCorrectable(f"{field}: {problem['msg']}") from None
+
+    def rebuild_if_identity_changed(before: list, after: Cluster, session) -> None:
+        if rejected(before) != rejected(after.annotations):
+            scene = store.db[SCENES].find_one({"_id": after.scene_id}, {"map": 1},
+                                              session=session)
+            if scene is not None and scene.get("map"):
+                store.db[MAPS].update_one({"_id": scene["map"]}, {"$set": {"rebuild": True}},
+                                          upsert=True, session=session)
+
+    store.add_annotations(cluster_id, [correction], then=rebuild_if_identity_changed)
+    return correction
+
+
+def audit(store: MemoryStore, limit: int = AUDIT_LIMIT, author: str | None = None) -> list[dict]:
+    """The corrections, newest first (of one author, if given): kind, who, when, what, on
+    which cluster, and whether (and by whom) each was undone."""
+    match = {"annotations.author": {"$exists": True} if author is None else author}
+    rows = list(store.db[CLUSTERS].aggregate([
+        {"$match": match},  # the `corrected` index: only corrected clusters are in it
+        {"$project": {"scene_id": 1, "object_id": 1, "region": "$search.region",
+                      "said": _human_annotations()}},
+        {"$unwind": "$said"},
+        *([{"$match": {"said.author": author}}] if author is not None else []),
+        {"$sort": {"said.time": -1, "said._id": -1}},
+        {"$limit": limit},
+    ]))
+    undone = {u["undoes"]: u for u in _undos(store, {row["_id"] for row in rows})}
+    return [_row(row, undone.get(row["said"]["_id"])) for row in rows]
+
+
+def _human_annotations() -> dict:
+    return {"$filter": {"input": "$annotations",
+                        "cond": {"$eq": ["$$this.source", HUMAN]}}}
+
+
+def _undos(store: MemoryStore, cluster_ids: set) -> list[dict]:
+    """The undos on these clusters (a cluster holds few corrections: all are read)."""
+    return [a for doc in store.db[CLUSTERS].aggregate([
+        {"$match": {"_id": {"$in": list(cluster_ids)}}},
+        {"$project": {"said": _human_annotations()}}])
+        for a in doc["said"] if a.get("_type") == "pm.annotation.Undo"]
+
+
+def _row(row: dict, undone_by: dict | None) -> dict:
+    said = row["said"]
+    return {"id": said["_id"], "kind": KINDS.get(said.get("_type"), said.get("_type")),
+            "author": said.get("author"), "time": said.get("time"),
+            "label": said.get("class_name"), "reason": said.get("reason") or None,
+            "undoes": said.get("undoes"), "cluster_id": row["_id"],
+            "scene_id": row.get("scene_id"), "object_id": row.get("object_id"),
+            "region": row.get("region"),
+            "undone_by": None if undone_by is None else {
+                "id": undone_by["_id"], "author": undone_by.get("author"),
+                "time": undone_by.get("time")}}
+
+
+def counts(store: MemoryStore) -> dict[str, int]:
+    """How many corrections of each kind were made, and on how many clusters."""
+    kinds: Counter = Counter()
+    clusters = 0
+    for doc in store.db[CLUSTERS].aggregate([
+            {"$match": {"annotations.author": {"$exists": True}}},
+            {"$project": {"said": _human_annotations()}}]):
+        clusters += 1
+        kinds.update(KINDS.get(a.get("_type"), "other") for a in doc["said"])
+    return {"relabel": kinds["relabel"], "reject": kinds["reject"], "undo": kinds["undo"],
+            "clusters": clusters}

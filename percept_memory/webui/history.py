@@ -19,7 +19,7 @@ from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 
 from .belief_map import Projection, floor_plan
-from .html import PageError, page, parse_id
+from .html import SCRIPT_CSP, PageError, page, parse_id
 
 EVENTS_SHOWN = 500
 TIMELINE_WIDTH, TIMELINE_HEIGHT, TIMELINE_MARGIN = 960, 80, 8
@@ -70,7 +70,7 @@ def routes(store: MemoryStore) -> APIRouter:
         return page(request, "object.html", {
             "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
             "view": view, "regions": regions, "track": marks, "timeline": timeline(history),
-        })
+        }, policy=SCRIPT_CSP)  # its correction form's script (curation.py)
 
     return router
 

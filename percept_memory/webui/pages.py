@@ -117,7 +117,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return page(request, "cluster.html", {
             "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
             "object": believed, "events": explained, "names": names,
-        })
+        }, policy=SCRIPT_CSP)  # its correction forms' script (curation.py)
 
     @router.get("/img/scenes/{scene_id}/images/{name}")
     async def scene_image(scene_id: str, name: str) -> Response:

@@ -27,7 +27,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import curation, similar
+from . import curation, review, similar
 from .catalogue import catalogue_router
 from .errors import (
     READ_ERRORS,
@@ -145,6 +145,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(catalogue_router(store))
     app.include_router(similar.routes(store, settings))
     app.include_router(curation.routes(store, settings))
+    app.include_router(review.routes(store))
 
     @app.get("/api/pipeline", summary="How far the belief of each map is",
              responses=READ_ERRORS)

@@ -22,6 +22,7 @@ for (const field of [author, token]) {
 for (const form of document.querySelectorAll("form.correct")) {
   form.addEventListener("submit", send);
 }
+document.querySelector("form.correct[data-then=next] input")?.focus();  // a queue starts here
 
 async function send(event) {
   event.preventDefault();

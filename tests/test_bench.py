@@ -32,6 +32,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
      {"kitchen_week", "at_scale", "ingest"}),
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
+    ("curation.py", ["--days", "1", "--repeat", "2"], {"keyboard", "review_page", "rejection"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",
                   "--playback-scenes", "3000"],
      {"scene_page_20_clusters", "depth_png", "map_page", "search_page", "solid_views",

@@ -1,0 +1,61 @@
+"""Facet counts (Datasette's facets), for the scene log: next to each value a filter can pick,
+how many scenes have it among those the other filters given select.
+
+Each count is a query of that value and the other filters, which the index of the value's
+field paired with time answers (schema.py: `robot_newest`, `regions_newest`, ...; with a
+second choice given, the planner takes the narrower index and checks the other on the scenes
+it reads); the counts of one filter's values go to the server as one command. Counting stops
+at CAP + 1 (shown as "100+"), so a count reads about that many index keys whatever the size
+of the memory, and the counts of a page share a time budget: values left uncounted when it
+runs out (a rare combination of two choices can make a count read far more) show no number
+rather than slowing the page.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+
+from pymongo.collection import Collection
+from pymongo.errors import ExecutionTimeout
+
+CAP = 100
+BUDGET_MS = 80  # for all the counts of a page: those it leaves uncounted show no number
+
+
+def facet_counts(scenes: Collection, query: Mapping, choices: Mapping[str, list[str]],
+                 fields: Mapping[str, str]) -> dict[str, dict[str, int | None]]:
+    """Filter name -> value -> scenes matching the query with that value instead of the
+    filter's own (at most CAP + 1; None when the page's time for counting ran out). `query`
+    is the scenes' filter with one key per filter (`fields[name]`, the field it matches)."""
+    deadline = time.monotonic() + BUDGET_MS / 1000
+    counts = {}
+    for name, values in choices.items():
+        others = {key: value for key, value in query.items() if key != fields[name]}
+        found = _counts(scenes, [{**others, fields[name]: v} for v in values], deadline)
+        counts[name] = dict(zip(values, found, strict=True))
+    return counts
+
+
+def _counts(scenes: Collection, queries: list[dict], deadline: float) -> list[int | None]:
+    """The count of each query, in one command: each query is a pipeline of its own
+    ($unionWith) on its own index, and none waits for a round trip."""
+    left_ms = int((deadline - time.monotonic()) * 1000)
+    if not queries or left_ms <= 0:
+        return [None] * len(queries)
+    first, *rest = [[{"$match": query}, {"$limit": CAP + 1},
+                     {"$group": {"_id": position, "n": {"$sum": 1}}}]
+                    for position, query in enumerate(queries)]
+    pipeline = first + [{"$unionWith": {"coll": scenes.name, "pipeline": p}} for p in rest]
+    try:
+        found = {row["_id"]: row["n"] for row in scenes.aggregate(pipeline, maxTimeMS=left_ms)}
+    except ExecutionTimeout:
+        return [None] * len(queries)
+    return [found.get(position, 0) for position in range(len(queries))]  # no row: none
+
+
+def shown(count: int | None) -> str:
+    """A count as the page shows it: "12", "1000+", or nothing when it was not counted."""
+    if count is None:
+        return ""
+    return f"{CAP}+" if count > CAP else f"{count:,}"

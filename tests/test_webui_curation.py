@@ -86,7 +86,7 @@ def error_of(answer, status: int) -> dict:
 
 
 @pytest.mark.parametrize("body, path", [
-    ({"label": "", "author": "ana"}, "body.class_name"),
+    ({"label": "", "author": "ana"}, "body.label"),
     ({"label": "mug", "author": "  "}, "body.author"),
     ({"label": "mug"}, "body.author"),
     ({"author": "ana"}, "body.label"),

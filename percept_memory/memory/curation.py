@@ -21,19 +21,25 @@ from datetime import UTC, datetime
 from bson import ObjectId
 from pydantic import TypeAdapter, ValidationError
 
+from percept_memory.converters import name_of
+
 from .schema import CLUSTERS, MAPS, SCENES
 from .store import MemoryStore
 from .types import Cluster, Rejection, Relabel, Undo, timestamp_from_datetime
-from .types.curation import HUMAN, Author, Correction, in_force, rejected
+from .types.curation import Author, Correction, in_force, rejected
 
 AUDIT_LIMIT = 1000
-KINDS = {"pm.annotation.Relabel": "relabel", "pm.annotation.Rejection": "reject",
-         "pm.annotation.Undo": "undo"}
+KINDS = {name_of(Relabel): "relabel", name_of(Rejection): "reject", name_of(Undo): "undo"}
 _author = TypeAdapter(Author)
 
 
 class NotCorrectable(ValueError):
-    """A correction that cannot be made: the message says why (a person can fix it)."""
+    """A correction that cannot be made: the message says why (a person can fix it), `field`
+    names the field at fault, if one is."""
+
+    def __init__(self, message: str, field: str = ""):
+        super().__init__(message)
+        self.field = field
 
 
 def relabel(store: MemoryStore, cluster_id: ObjectId, class_name: str, author: str) -> Relabel:
@@ -62,7 +68,7 @@ def _who(author: str) -> dict:
         name = _author.validate_python(author)
     except ValidationError:
         raise NotCorrectable("author: who makes a correction is named (1 to 100 "
-                             "characters)") from None
+                             "characters)", "author") from None
     return {"author": name, "time": timestamp_from_datetime(datetime.now(UTC))}
 
 
@@ -72,7 +78,7 @@ def _append(store: MemoryStore, cluster_id: ObjectId, make) -> Correction:
     except ValidationError as error:
         problem = error.errors(include_url=False, include_input=False)[0]
         field = ".".join(map(str, problem["loc"]))
-        raise NotCorrectable(f"{field}: {problem['msg']}") from None
+        raise NotCorrectable(f"{field}: {problem['msg']}", field) from None
 
     def rebuild_if_identity_changed(before: list, after: Cluster, session) -> None:
         if rejected(before) != rejected(after.annotations):
@@ -104,8 +110,9 @@ def audit(store: MemoryStore, limit: int = AUDIT_LIMIT, author: str | None = Non
 
 
 def _human_annotations() -> dict:
+    """A cluster's corrections (the annotations with an author, as the index has them)."""
     return {"$filter": {"input": "$annotations",
-                        "cond": {"$eq": ["$$this.source", HUMAN]}}}
+                        "cond": {"$ne": [{"$type": "$$this.author"}, "missing"]}}}
 
 
 def _undos(store: MemoryStore, cluster_ids: set) -> list[dict]:
@@ -113,7 +120,7 @@ def _undos(store: MemoryStore, cluster_ids: set) -> list[dict]:
     return [a for doc in store.db[CLUSTERS].aggregate([
         {"$match": {"_id": {"$in": list(cluster_ids)}}},
         {"$project": {"said": _human_annotations()}}])
-        for a in doc["said"] if a.get("_type") == "pm.annotation.Undo"]
+        for a in doc["said"] if a.get("_type") == name_of(Undo)]
 
 
 def _row(row: dict, undone_by: dict | None) -> dict:

@@ -37,6 +37,7 @@ from .html import SCRIPT_CSP, page
 from .queries import small_body
 
 AUDIT_SHOWN = 200
+BODY_FIELDS = {"class_name": "label"}  # a correction's fields as the request bodies name them
 
 
 class Relabelling(BaseModel):
@@ -64,10 +65,9 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         try:
             made = await run_in_threadpool(make, store, *args)
         except curation.NotCorrectable as error:
-            field, _, message = str(error).partition(": ")
-            raise ApiError(422, "the correction is not valid",
-                           [{"path": f"body.{field}" if message else "", "message": str(error)}]
-                           ) from None
+            field = BODY_FIELDS.get(error.field, error.field)
+            raise ApiError(422, "the correction is not valid", [
+                {"path": f"body.{field}" if field else "", "message": str(error)}]) from None
         return {"correction": described(made)}
 
     write = {"status_code": 201, "responses": WRITE_ERRORS, "tags": ["corrections"],

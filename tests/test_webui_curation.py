@@ -13,6 +13,8 @@ from percept_memory.demo import kitchen_week
 from percept_memory.memory import curation
 from percept_memory.memory.schema import OBJECTS
 from percept_memory.memory.settings import Settings
+from percept_memory.memory.types import Classification, GroundTruth
+from percept_memory.webui import curation as curation_page
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated, served
@@ -210,3 +212,22 @@ def test_with_a_token_the_page_asks_for_it_once(memory):
         expect(tab.locator("h1")).to_contain_text("fruit bowl")
         browser.close()
     assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_a_cluster_with_a_ground_truth_shows_it_beside_the_predictions(client, memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=140)
+    memory.add_annotation(doc["_id"], GroundTruth(source="PnP09", class_name="Teapot"))
+    cluster = memory.get_cluster(doc["_id"])
+    (predicted, *_) = cluster.annotations_of(Classification)
+    curation.relabel(memory, doc["_id"], "teapot", author="ana")
+    rows = curation_page.versus_truth(memory.get_cluster(doc["_id"]))
+    assert {"source": "ana", "name": "teapot", "confidence": None,
+            "kind": "pm.annotation.Relabel", "true": True} in rows
+    mine = [r for r in rows if r["source"] == predicted.source
+            and r["name"] == predicted.class_name]
+    assert mine and mine[0]["true"] is False  # (the kitchen week has no teapot)
+    text = client.get(f"/clusters/{doc['_id']}").text
+    assert '<strong class="truth">Teapot</strong>' in text
+    assert '<tr class="right"><td>ana</td><td>teapot</td>' in text
+    assert curation_page.versus_truth(memory.get_cluster(
+        clusters_of_objects(memory, 1, skip=150)[0]["_id"])) == []

@@ -26,10 +26,11 @@ from pydantic import BaseModel, Field
 from percept_memory.memory import curation
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import Id
-from percept_memory.memory.types.curation import Correction
+from percept_memory.memory.types import Annotation, Cluster, GroundTruth, Id
+from percept_memory.memory.types.curation import Correction, in_force
 
 from .errors import READ_ERRORS, WRITE_ERRORS, ApiError
 from .guard import authorise
@@ -125,6 +126,21 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         }, policy=SCRIPT_CSP)
 
     return router
+
+
+def versus_truth(cluster: Cluster) -> list[dict[str, Any]]:
+    """What each annotator (and person) named the cluster beside its ground truth (a labelled
+    data set's, RoboSherlock's PnP09): source, name, confidence, whether it is the true
+    class; none without a ground truth."""
+    truths = {normal_label(t.class_name) for t in cluster.annotations_of(GroundTruth)}
+    if not truths:
+        return []
+    said = [a for a in in_force(cluster.annotations) if isinstance(a, Annotation)
+            and not isinstance(a, GroundTruth) and a.naming_weight > 0]
+    return [{"source": a.author if isinstance(a, Correction) else a.source, "name": label,
+             "confidence": getattr(a, "confidence", None), "kind": a.type_name,
+             "true": normal_label(label) in truths}
+            for a in said for label in a.labels()]
 
 
 def described(correction: Correction) -> dict[str, Any]:

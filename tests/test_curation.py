@@ -17,7 +17,7 @@ from percept_memory.memory import curation
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.pipeline import request_rebuild
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
-from percept_memory.memory.types import Classification, Rejection, Relabel, Undo
+from percept_memory.memory.types import Classification, Rejection, Relabel, SameObject, Undo
 from percept_memory.memory.types.curation import verdict
 from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
@@ -95,10 +95,47 @@ def test_a_rejection_takes_the_cluster_out_of_the_belief_until_undone(memory):
     assert curation.counts(memory)["reject"] >= 1
 
 
+def two_objects(store, skip: int = 0) -> tuple:
+    """The latest clusters of two objects of one map, not corrected."""
+    first, second = (store.db[OBJECTS].find({"map": {"$exists": True}}).sort("_id", 1)
+                     .skip(skip).limit(2))
+    assert first["map"] == second["map"]
+    return first["last_cluster"], second["last_cluster"]
+
+
+def test_a_merge_makes_two_objects_one_until_undone(memory):
+    a, b = two_objects(memory, skip=2)
+    objects = memory.db[OBJECTS].count_documents({})
+    names = {n for c in (a, b) for n in memory.db[OBJECTS].find_one(
+        {"_id": memory.clusters.find_one({"_id": c})["object_id"]})["label_weights"]}
+    made = curation.merge(memory, a, b, author="ana")
+    assert isinstance(made, SameObject) and made.other in (a, b)
+    settle(memory)
+    linked = {memory.clusters.find_one({"_id": c})["object_id"] for c in (a, b)}
+    assert len(linked) == 1 and memory.db[OBJECTS].count_documents({}) == objects - 1
+    (one,) = linked
+    assert set(memory.db[OBJECTS].find_one({"_id": one})["label_weights"]) == names
+    assert curation.audit(memory, 1)[0]["kind"] == "merge"
+    later = b if made.other == a else a  # the correction is stored on the later cluster
+    curation.undo(memory, later, made.id, author="ana")
+    settle(memory)
+    assert len({memory.clusters.find_one({"_id": c})["object_id"] for c in (a, b)}) == 2
+    assert memory.db[OBJECTS].count_documents({}) == objects
+
+
+def test_a_merge_with_itself_or_an_unknown_cluster_is_refused(memory):
+    a, _ = two_objects(memory)
+    with pytest.raises(curation.NotCorrectable, match="itself"):
+        curation.merge(memory, a, a, author="ana")
+    with pytest.raises(NotFound):
+        curation.merge(memory, a, ObjectId(), author="ana")
+
+
 def test_the_belief_with_corrections_built_live_equals_the_one_rebuilt(memory):
     relabelled = a_classified_cluster(memory, skip=5)
     curation.relabel(memory, relabelled.id, "teapot", author="ana")
     curation.reject(memory, a_classified_cluster(memory, skip=8).id, author="bo")
+    curation.merge(memory, *two_objects(memory, skip=6), author="cy")
     settle(memory)
     live = beliefs(memory)
     assert live[relabelled.id][0][0] == "teapot"

@@ -231,3 +231,45 @@ def test_a_cluster_with_a_ground_truth_shows_it_beside_the_predictions(client, m
     assert '<tr class="right"><td>ana</td><td>teapot</td>' in text
     assert curation_page.versus_truth(memory.get_cluster(
         clusters_of_objects(memory, 1, skip=150)[0]["_id"])) == []
+
+
+def test_two_objects_are_merged_over_http_and_a_bad_merge_is_refused(client, memory):
+    first, second = memory.db[OBJECTS].find().sort("_id", 1).skip(10).limit(2)
+    error_of(client.post(f"/api/objects/{first['_id']}/merge", headers=JSON,
+                         json={"other": str(ObjectId()), "author": "ana"}), 404)
+    error = error_of(client.post(f"/api/clusters/{first['last_cluster']}/merge", headers=JSON,
+                                 json={"other": str(first["last_cluster"]), "author": "ana"}),
+                     422)
+    assert error["problems"][0]["path"] == "body.other"
+    answer = client.post(f"/api/objects/{first['_id']}/merge", headers=JSON,
+                         json={"other": str(second["_id"]), "author": "ana"})
+    assert answer.status_code == 201
+    made = answer.json()["correction"]
+    assert made["_type"] == "pm.annotation.SameObject"
+    assert {made["other"]} < {str(first["last_cluster"]), str(second["last_cluster"])}
+    assert client.get("/api/corrections?limit=1").json()["corrections"][0]["kind"] == "merge"
+
+
+def test_an_object_is_merged_from_its_page_by_keyboard(memory):
+    cluster = memory.clusters.find_one({"annotations.author": {"$exists": False},
+                                        "object_id": {"$ne": None}}, sort=[("_id", -1)])
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/objects/{cluster['object_id']}")
+        tab.locator("#author").fill("ana")
+        choice = tab.locator("form.merge select[name=other]")
+        choice.focus()
+        tab.keyboard.press("ArrowDown")
+        other = choice.input_value()
+        tab.keyboard.press("Tab")  # to Merge
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+    (row,) = curation.audit(memory, 1)
+    assert row["kind"] == "merge" and row["author"] == "ana"
+    other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
+    this_last = memory.db[OBJECTS].find_one({"_id": cluster["object_id"]})["last_cluster"]
+    assert {row["cluster_id"], row["other"]} == {other_last, this_last}

@@ -2,15 +2,17 @@
 
     relabel(store, cluster_id, "mug", author="ana")     # the object seen here is a mug
     reject(store, cluster_id, author="ana")             # no object is here
+    merge(store, cluster_id, other_id, author="ana")    # the same object is seen in both
     undo(store, cluster_id, correction_id, author="bo") # takes one back (itself recorded)
     audit(store)                                        # every correction, newest first
 
 Each is an annotation appended to the cluster (types/curation.py), beside what annotators said,
 in one transaction with what it changes in the belief: the names of the cluster's object follow
 at once (store.py renames it, naming.py weighs the correction above everything else). A
-correction that changes whether the cluster is an object at all (a rejection, or taking one
-back) also asks, in the same transaction, for its map's belief to be rebuilt by the memory
-pipeline (pipeline.py): identity then decides the map's scenes again without (or with) it.
+correction that changes what identity decides (a rejection: the cluster is no object; a
+merge: two objects are one; or taking one back) also asks, in the same transaction, for its
+map's belief to be rebuilt by the memory pipeline (pipeline.py): identity then decides the
+map's scenes again with what people said.
 """
 
 from __future__ import annotations
@@ -23,13 +25,15 @@ from pydantic import TypeAdapter, ValidationError
 
 from percept_memory.converters import name_of
 
+from .errors import NotFound
 from .schema import CLUSTERS, MAPS, SCENES
 from .store import MemoryStore
 from .types import Cluster, Rejection, Relabel, Undo, timestamp_from_datetime
-from .types.curation import Author, Correction, in_force, rejected
+from .types.curation import Author, Correction, SameObject, identity_said, in_force
 
 AUDIT_LIMIT = 1000
-KINDS = {name_of(Relabel): "relabel", name_of(Rejection): "reject", name_of(Undo): "undo"}
+KINDS = {name_of(Relabel): "relabel", name_of(Rejection): "reject",
+         name_of(SameObject): "merge", name_of(Undo): "undo"}
 _author = TypeAdapter(Author)
 
 
@@ -52,11 +56,32 @@ def reject(store: MemoryStore, cluster_id: ObjectId, author: str, reason: str = 
     return _append(store, cluster_id, lambda: Rejection(reason=reason, **_who(author)))
 
 
+def merge(store: MemoryStore, cluster_id: ObjectId, other_id: ObjectId,
+          author: str) -> SameObject:
+    """Say the two clusters show the same object (their objects are merged). Stored on the
+    later of the two, naming the earlier, which identity has decided on by then."""
+    scenes = {c.id: c.scene_id for c in store.get_clusters([cluster_id, other_id]).values()}
+    for key in (cluster_id, other_id):
+        if key not in scenes:
+            raise NotFound("cluster", key)
+    if cluster_id == other_id:
+        raise NotCorrectable("other: a cluster is the same object as itself already", "other")
+    seen = {doc["_id"]: doc for doc in store.db[SCENES].find(
+        {"_id": {"$in": list(set(scenes.values()))}}, {"map": 1, "timestamp": 1})}
+    (earlier, _), (later, _) = sorted(
+        ((key, seen[scenes[key]]) for key in (cluster_id, other_id)),
+        key=lambda item: (item[1]["timestamp"], item[0]))
+    if seen[scenes[earlier]].get("map") != seen[scenes[later]].get("map"):
+        raise NotCorrectable("other: observations in different maps are never one object",
+                             "other")
+    return _append(store, later, lambda: SameObject(other=earlier, **_who(author)))
+
+
 def undo(store: MemoryStore, cluster_id: ObjectId, correction_id: ObjectId,
          author: str) -> Undo:
     """Take back a correction of the cluster that is in force."""
     cluster = store.get_cluster(cluster_id)
-    if not any(isinstance(a, Relabel | Rejection) and a.id == correction_id
+    if not any(isinstance(a, Relabel | Rejection | SameObject) and a.id == correction_id
                for a in in_force(cluster.annotations)):
         raise NotCorrectable(f"cluster {cluster_id} has no correction {correction_id} in force "
                              "to undo")
@@ -81,7 +106,7 @@ def _append(store: MemoryStore, cluster_id: ObjectId, make) -> Correction:
         raise NotCorrectable(f"{field}: {problem['msg']}", field) from None
 
     def rebuild_if_identity_changed(before: list, after: Cluster, session) -> None:
-        if rejected(before) != rejected(after.annotations):
+        if identity_said(before) != identity_said(after.annotations):
             scene = store.db[SCENES].find_one({"_id": after.scene_id}, {"map": 1},
                                               session=session)
             if scene is not None and scene.get("map"):
@@ -128,6 +153,7 @@ def _row(row: dict, undone_by: dict | None) -> dict:
     return {"id": said["_id"], "kind": KINDS.get(said.get("_type"), said.get("_type")),
             "author": said.get("author"), "time": said.get("time"),
             "label": said.get("class_name"), "reason": said.get("reason") or None,
+            "other": said.get("other"),
             "undoes": said.get("undoes"), "cluster_id": row["_id"],
             "scene_id": row.get("scene_id"), "object_id": row.get("object_id"),
             "region": row.get("region"),
@@ -145,5 +171,4 @@ def counts(store: MemoryStore) -> dict[str, int]:
             {"$project": {"said": _human_annotations()}}]):
         clusters += 1
         kinds.update(KINDS.get(a.get("_type"), "other") for a in doc["said"])
-    return {"relabel": kinds["relabel"], "reject": kinds["reject"], "undo": kinds["undo"],
-            "clusters": clusters}
+    return {**{kind: kinds[kind] for kind in KINDS.values()}, "clusters": clusters}

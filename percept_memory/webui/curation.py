@@ -3,7 +3,9 @@
     POST /api/clusters/{id}/relabel   {"label": "mug", "author": "ana"}
     POST /api/clusters/{id}/reject    {"author": "ana", "reason": "a reflection"}
     POST /api/clusters/{id}/corrections/{correction_id}/undo   {"author": "bo"}
+    POST /api/clusters/{id}/merge     {"other": "<cluster id>", "author": "ana"}: one object
     POST /api/objects/{id}/relabel    {"label": "mug", "author": "ana"}: its latest observation
+    POST /api/objects/{id}/merge      {"other": "<object id>", "author": "ana"}
     GET  /api/corrections             the audit: every correction, newest first, and counts
 
 Writes need the write token when one is configured; the guard (guard.py) refuses them from
@@ -38,6 +40,7 @@ from .html import SCRIPT_CSP, page
 from .queries import small_body
 
 AUDIT_SHOWN = 200
+MERGE_CANDIDATES = 20
 BODY_FIELDS = {"class_name": "label"}  # a correction's fields as the request bodies name them
 
 
@@ -49,6 +52,11 @@ class Relabelling(BaseModel):
 class Rejecting(BaseModel):
     author: str = Field(description="who corrects (1-100 characters)")
     reason: str = Field(default="", description="why the detection is wrong (optional)")
+
+
+class Merging(BaseModel):
+    other: Id = Field(description="the other cluster (or object) showing the same object")
+    author: str = Field(description="who corrects (1-100 characters)")
 
 
 class Undoing(BaseModel):
@@ -89,6 +97,26 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         by the memory pipeline, see GET /api/pipeline) and exports skip it."""
         return await corrected(curation.reject, cluster_id, body.author, body.reason)
 
+    @router.post("/api/clusters/{cluster_id}/merge", summary="Say two clusters show one object",
+                 **write)
+    async def merge_clusters(cluster_id: Id, body: Merging) -> dict[str, Any]:
+        """The object seen in the cluster is the one seen in `other` (same map): identity
+        merges their objects (the map's belief is rebuilt by the memory pipeline). Stored on
+        the later of the two clusters."""
+        return await corrected(curation.merge, cluster_id, body.other, body.author)
+
+    @router.post("/api/objects/{object_id}/merge", summary="Say two objects are one", **write)
+    async def merge_objects(object_id: Id, body: Merging) -> dict[str, Any]:
+        """The object is the object `other`: a merge of their latest observations."""
+        latest = await run_in_threadpool(lambda: {o["_id"]: o["last_cluster"] for o in
+                                                  objects.find({"_id": {"$in": [
+                                                      object_id, body.other]}})})
+        for key in (object_id, body.other):
+            if key not in latest:
+                raise NotFound("object", key)
+        return await corrected(curation.merge, latest[object_id], latest[body.other],
+                               body.author)
+
     @router.post("/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
                  summary="Take a correction back", **write)
     async def undo_correction(cluster_id: Id, correction_id: Id,
@@ -126,6 +154,21 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         }, policy=SCRIPT_CSP)
 
     return router
+
+
+def merge_candidates(store: MemoryStore, believed: dict, history: list[dict]) -> list[dict]:
+    """The objects of the object's map a person may find it is one with: those identity
+    weighed it against (its events' alternatives) and those of its names (the `names`
+    index), at most MERGE_CANDIDATES."""
+    weighed = {a["object_id"] for e in history for a in e.get("alternatives", [])
+               if a.get("object_id") not in (None, believed["_id"])}
+    found = store.db[OBJECTS].find({"_id": {"$in": list(weighed)}}, {"name": 1}).limit(
+        MERGE_CANDIDATES)
+    alike = store.db[OBJECTS].find({"names": {"$in": believed.get("names") or []},
+                                    "map": believed.get("map"), "_id": {"$ne": believed["_id"]}},
+                                   {"name": 1}).limit(MERGE_CANDIDATES)
+    unique = {o["_id"]: o for o in [*found, *alike]}
+    return list(unique.values())[:MERGE_CANDIDATES]
 
 
 def versus_truth(cluster: Cluster) -> list[dict[str, Any]]:

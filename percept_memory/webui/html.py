@@ -19,7 +19,7 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
-from percept_memory.memory.types import Rejection, Relabel
+from percept_memory.memory.types import Correction
 from percept_memory.memory.types.curation import in_force, verdict
 
 from . import render
@@ -53,7 +53,7 @@ templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html t
 templates.env.filters["time"] = render.time_of
 templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields,
                              open_fields=render.OPEN_FIELDS, in_force=in_force, verdict=verdict)
-templates.env.tests["correction"] = lambda a: isinstance(a, Relabel | Rejection)
+templates.env.tests["correction"] = lambda a: isinstance(a, Correction)
 
 
 class PageError(Exception):

@@ -31,7 +31,7 @@ from .base import (
     stored_type,
     timestamp_from_datetime,
 )
-from .curation import Correction, Rejection, Relabel, Undo
+from .curation import Correction, Rejection, Relabel, SameObject, Undo
 from .hypotheses import Hypothesis, ImageROI, PointCluster, SpatialVolume
 from .raw import Box, CameraInfo, Image, NDArray, PointCloud, Pose, Quaternion, Transform, Vec3
 from .scene import Cluster, Scene
@@ -41,7 +41,7 @@ __all__ = [
     "Correction", "Detection", "FeatureVector", "Geometry", "GroundTruth", "Hypothesis", "Id",
     "Identifiable", "Image", "ImageROI", "Location", "LogLine", "Logo", "Model", "NDArray",
     "PointCloud", "PointCluster", "Pose", "Product", "Quaternion", "Rejection", "Relabel",
-    "Relation", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text", "Timestamp",
-    "Tracking", "Transform", "Undo", "Unknown", "Vec3", "WebLookup", "datetime_from_timestamp",
-    "stored_type", "timestamp_from_datetime",
+    "Relation", "SameObject", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text",
+    "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "WebLookup",
+    "datetime_from_timestamp", "stored_type", "timestamp_from_datetime",
 ]

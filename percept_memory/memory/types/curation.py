@@ -4,6 +4,8 @@ A correction is an annotation of its own, appended beside the annotators' (which
 changes), carrying who made it and when. The latest correction in force decides:
 - `Relabel`: the object seen here is `class_name` (the class, or the name);
 - `Rejection`: this detection is wrong, there is no object here;
+- `SameObject`: the object seen here is the one seen in another, earlier cluster (two
+  objects the memory holds apart are one: they are merged);
 - `Undo`: takes back an earlier correction; itself recorded, so the audit keeps both.
 
 Which correction is in force depends on the set of annotations, never on the order they were
@@ -54,9 +56,17 @@ class Rejection(Correction):
     reason: Annotated[str, Field(max_length=500)] = ""
 
 
+@stored_type("pm.annotation.SameObject")
+class SameObject(Correction):
+    """A person says the object seen here is the one seen in the cluster `other`, an earlier
+    observation of the same map: identity merges the two objects when it reaches this one."""
+
+    other: Id
+
+
 @stored_type("pm.annotation.Undo")
 class Undo(Correction):
-    """A person takes back the correction `undoes` (a Relabel or a Rejection)."""
+    """A person takes back the correction `undoes` (a Relabel, a Rejection, a SameObject)."""
 
     undoes: Id
 
@@ -78,3 +88,16 @@ def verdict(annotations: Iterable) -> Relabel | Rejection | None:
 def rejected(annotations: Iterable) -> bool:
     """Whether a person said the detection these annotations are of is wrong."""
     return isinstance(verdict(annotations), Rejection)
+
+
+def same_as(annotations: Iterable) -> list:
+    """The earlier clusters a person said show the same object as these annotations' cluster."""
+    return sorted({a.other for a in in_force(annotations) if isinstance(a, SameObject)})
+
+
+def identity_said(annotations: Iterable) -> tuple[bool, list]:
+    """What people said that identity decides on: whether the cluster is no object at all,
+    and which earlier clusters show its object. A correction that changes it rebuilds the
+    map's belief (memory/curation.py)."""
+    annotations = list(annotations)
+    return rejected(annotations), same_as(annotations)

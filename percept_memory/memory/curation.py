@@ -1,4 +1,5 @@
-"""Corrections by people: relabel a cluster, reject it, undo either; and the audit of them.
+"""Corrections by people: relabel a cluster, reject it, merge two objects, undo any of them;
+and the audit of them.
 
     relabel(store, cluster_id, "mug", author="ana")     # the object seen here is a mug
     reject(store, cluster_id, author="ana")             # no object is here
@@ -60,7 +61,8 @@ def merge(store: MemoryStore, cluster_id: ObjectId, other_id: ObjectId,
           author: str) -> SameObject:
     """Say the two clusters show the same object (their objects are merged). Stored on the
     later of the two, naming the earlier, which identity has decided on by then."""
-    scenes = {c.id: c.scene_id for c in store.get_clusters([cluster_id, other_id]).values()}
+    scenes = {doc["_id"]: doc["scene_id"] for doc in store.db[CLUSTERS].find(
+        {"_id": {"$in": [cluster_id, other_id]}}, {"scene_id": 1})}
     for key in (cluster_id, other_id):
         if key not in scenes:
             raise NotFound("cluster", key)

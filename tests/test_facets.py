@@ -10,6 +10,8 @@ from fastapi.testclient import TestClient
 
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import ClusterQuery
 from percept_memory.webui import facets
 from percept_memory.webui.app import create_app
 from percept_memory.webui.scene_log import CHOICES, scene_filter
@@ -99,3 +101,22 @@ def test_counts_left_when_the_time_budget_runs_out_show_no_number(memory, monkey
     assert all(n is None for values in counts.values() for n in values.values())
     client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
     assert '<option value="tiago">tiago</option>' in client.get("/scenes").text
+
+
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"text": "cup", "robot": "tiago"},
+                                   {"region": ["table", "shelf"]}])
+def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query(memory,
+                                                                                  asked):
+    engine = QueryEngine(memory)
+    choices = {"region": sorted(memory.clusters.distinct("search.region")),
+               "robot": sorted(memory.clusters.distinct("search.robot"))}
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters,
+                                         ClusterQuery(**asked), choices)
+    for name, values in choices.items():
+        for value in values:
+            expected = engine.clusters(**{**asked, name: [value], "limit": 0, "count": True}).total
+            assert counts[name][value] == min(expected, facets.CAP + 1), (name, value)
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    text = client.get("/search", params={**asked}).text
+    table = counts["region"]["table"]
+    assert f'table ({facets.shown(table)})</option>' in text or table == 0

@@ -1,10 +1,12 @@
-"""Facet counts (Datasette's facets), for the scene log: next to each value a filter can pick,
-how many scenes have it among those the other filters given select.
+"""Facet counts (Datasette's facets): next to each value a filter can pick, how many scenes
+(the scene log) or clusters (the search page: regions and robots) have it among those the
+other filters given select.
 
 Each count is a query of that value and the other filters, which the index of the value's
-field paired with time answers (schema.py: `robot_newest`, `regions_newest`, ...; with a
-second choice given, the planner takes the narrower index and checks the other on the scenes
-it reads); the counts of one filter's values go to the server as one command. Counting stops
+field paired with time answers (schema.py: the scenes' `robot_newest`, `regions_newest`, ...,
+the clusters' `region_newest`, `robot_newest`; with another filter given, the planner takes
+the narrower index and checks the rest on the documents it reads); the counts of one filter's
+values go to the server as one command. Counting stops
 at CAP + 1 (shown as "100+"), so a count reads about that many index keys whatever the size
 of the memory, and the counts of a page share a time budget: values left uncounted when it
 runs out (a rare combination of two choices can make a count read far more) show no number
@@ -19,25 +21,51 @@ from collections.abc import Mapping
 from pymongo.collection import Collection
 from pymongo.errors import ExecutionTimeout
 
+from percept_memory.queries.clusters import compiled
+from percept_memory.queries.compile import conjunction
+from percept_memory.queries.model import ClusterFilter
+from percept_memory.queries.ops import Runner
+
 CAP = 100
+CLUSTER_FIELDS = {"region": "search.region", "robot": "search.robot"}
 BUDGET_MS = 80  # for all the counts of a page: those it leaves uncounted show no number
 
 
 def facet_counts(scenes: Collection, query: Mapping, choices: Mapping[str, list[str]],
                  fields: Mapping[str, str]) -> dict[str, dict[str, int | None]]:
-    """Filter name -> value -> scenes matching the query with that value instead of the
-    filter's own (at most CAP + 1; None when the page's time for counting ran out). `query`
-    is the scenes' filter with one key per filter (`fields[name]`, the field it matches)."""
-    deadline = time.monotonic() + BUDGET_MS / 1000
-    counts = {}
+    """The scene log's: filter name -> value -> scenes matching the query with that value
+    instead of the filter's own (see `counted`). `query` is the scenes' filter with one key
+    per filter (`fields[name]`, the field it matches)."""
+    asked = {}
     for name, values in choices.items():
         others = {key: value for key, value in query.items() if key != fields[name]}
-        found = _counts(scenes, [{**others, fields[name]: v} for v in values], deadline)
-        counts[name] = dict(zip(values, found, strict=True))
-    return counts
+        asked[name] = {value: {**others, fields[name]: value} for value in values}
+    return counted(scenes, asked)
 
 
-def _counts(scenes: Collection, queries: list[dict], deadline: float) -> list[int | None]:
+def cluster_facet_counts(runner: Runner, clusters: Collection, query: ClusterFilter,
+                         choices: Mapping[str, list[str]]) -> dict[str, dict[str, int | None]]:
+    """The search page's: filter name (region, robot) -> value -> clusters matching the query
+    with that value instead of the filter's own (see `counted`)."""
+    asked = {}
+    for name, values in choices.items():
+        match, _ = runner.run(compiled(query.model_copy(update={name: []})))
+        asked[name] = {value: conjunction([match, {CLUSTER_FIELDS[name]: value}])
+                       for value in values}
+    return counted(clusters, asked)
+
+
+def counted(collection: Collection, asked: Mapping[str, Mapping[str, dict]]
+            ) -> dict[str, dict[str, int | None]]:
+    """Name -> value -> how many documents its filter selects, at most CAP + 1; None when the
+    page's time for counting ran out first. The counts of one name go as one command."""
+    deadline = time.monotonic() + BUDGET_MS / 1000
+    return {name: dict(zip(filters, _counts(collection, list(filters.values()), deadline),
+                           strict=True))
+            for name, filters in asked.items()}
+
+
+def _counts(collection: Collection, queries: list[dict], deadline: float) -> list[int | None]:
     """The count of each query, in one command: each query is a pipeline of its own
     ($unionWith) on its own index, and none waits for a round trip."""
     left_ms = int((deadline - time.monotonic()) * 1000)
@@ -46,9 +74,10 @@ def _counts(scenes: Collection, queries: list[dict], deadline: float) -> list[in
     first, *rest = [[{"$match": query}, {"$limit": CAP + 1},
                      {"$group": {"_id": position, "n": {"$sum": 1}}}]
                     for position, query in enumerate(queries)]
-    pipeline = first + [{"$unionWith": {"coll": scenes.name, "pipeline": p}} for p in rest]
+    pipeline = first + [{"$unionWith": {"coll": collection.name, "pipeline": p}} for p in rest]
     try:
-        found = {row["_id"]: row["n"] for row in scenes.aggregate(pipeline, maxTimeMS=left_ms)}
+        found = {row["_id"]: row["n"]
+                 for row in collection.aggregate(pipeline, maxTimeMS=left_ms)}
     except ExecutionTimeout:
         return [None] * len(queries)
     return [found.get(position, 0) for position in range(len(queries))]  # no row: none

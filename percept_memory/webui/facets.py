@@ -6,7 +6,7 @@ Each count is a query of that value and the other filters, which the index of th
 field paired with time answers (schema.py: the scenes' `robot_newest`, `regions_newest`, ...,
 the clusters' `region_newest`, `robot_newest`; with another filter given, the planner takes
 the narrower index and checks the rest on the documents it reads); the counts of one filter's
-values go to the server as one command. Counting stops
+values go to the server a few commands at most. Counting stops
 at CAP + 1 (shown as "100+"), so a count reads about that many index keys whatever the size
 of the memory, and the counts of a page share a time budget: values left uncounted when it
 runs out (a rare combination of two choices can make a count read far more) show no number
@@ -28,6 +28,7 @@ from percept_memory.queries.ops import Runner
 
 CAP = 100
 CLUSTER_FIELDS = {"region": "search.region", "robot": "search.robot"}
+PER_COMMAND = 20
 BUDGET_MS = 80  # for all the counts of a page: those it leaves uncounted show no number
 
 
@@ -58,11 +59,19 @@ def cluster_facet_counts(runner: Runner, clusters: Collection, query: ClusterFil
 def counted(collection: Collection, asked: Mapping[str, Mapping[str, dict]]
             ) -> dict[str, dict[str, int | None]]:
     """Name -> value -> how many documents its filter selects, at most CAP + 1; None when the
-    page's time for counting ran out first. The counts of one name go as one command."""
+    page's time for counting ran out first. Counts go PER_COMMAND values to a command, the
+    filters with the fewest values first, so a budget that runs out leaves the long lists
+    (a building's 200 regions) partly uncounted rather than everything."""
     deadline = time.monotonic() + BUDGET_MS / 1000
-    return {name: dict(zip(filters, _counts(collection, list(filters.values()), deadline),
-                           strict=True))
-            for name, filters in asked.items()}
+    counts: dict[str, dict[str, int | None]] = {}
+    for name in sorted(asked, key=lambda name: len(asked[name])):  # the fewest values first
+        values = list(asked[name])
+        counts[name] = {}
+        for start in range(0, len(values), PER_COMMAND):
+            some = values[start:start + PER_COMMAND]
+            found = _counts(collection, [asked[name][v] for v in some], deadline)
+            counts[name].update(zip(some, found, strict=True))
+    return {name: counts[name] for name in asked}
 
 
 def _counts(collection: Collection, queries: list[dict], deadline: float) -> list[int | None]:

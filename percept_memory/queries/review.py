@@ -26,7 +26,7 @@ from percept_memory.memory.naming import naming_labels
 from percept_memory.memory.schema import CLUSTERS, EVENTS, OBJECTS, SCENES
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Annotation
-from percept_memory.memory.types.curation import Correction, verdict
+from percept_memory.memory.types.curation import Correction, in_force
 
 DEFAULT_WINDOW, MAX_WINDOW = 500, 5000
 DEFAULT_SHOWN, MAX_SHOWN = 50, 500
@@ -87,7 +87,7 @@ def review_queue(store: MemoryStore, window: int = DEFAULT_WINDOW, shown: int = 
         clusters += 1
         said = docs.decode_cluster({"_id": doc["_id"], "_type": "pm.scene.Cluster",
                                     "annotations": doc["annotations"]}, {}).annotations
-        if verdict(said) is not None:
+        if any(isinstance(a, Correction) for a in in_force(said)):
             fixed += 1
             continue
         names = naming_labels(said).most_common()

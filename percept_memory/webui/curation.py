@@ -79,6 +79,16 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
                 {"path": f"body.{field}" if field else "", "message": str(error)}]) from None
         return {"correction": described(made)}
 
+    def latest_observations(*object_ids) -> list:
+        """The latest cluster of each object: a correction of an object is one of what was
+        seen of it, so it outlives a rebuild of the belief (which makes objects afresh)."""
+        found = {o["_id"]: o["last_cluster"] for o in objects.find(
+            {"_id": {"$in": list(object_ids)}}, {"last_cluster": 1})}
+        for key in object_ids:
+            if key not in found:
+                raise NotFound("object", key)
+        return [found[key] for key in object_ids]
+
     write = {"status_code": 201, "responses": WRITE_ERRORS, "tags": ["corrections"],
              "dependencies": [Depends(writer)]}
 
@@ -108,14 +118,8 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
     @router.post("/api/objects/{object_id}/merge", summary="Say two objects are one", **write)
     async def merge_objects(object_id: Id, body: Merging) -> dict[str, Any]:
         """The object is the object `other`: a merge of their latest observations."""
-        latest = await run_in_threadpool(lambda: {o["_id"]: o["last_cluster"] for o in
-                                                  objects.find({"_id": {"$in": [
-                                                      object_id, body.other]}})})
-        for key in (object_id, body.other):
-            if key not in latest:
-                raise NotFound("object", key)
-        return await corrected(curation.merge, latest[object_id], latest[body.other],
-                               body.author)
+        mine, other = await run_in_threadpool(latest_observations, object_id, body.other)
+        return await corrected(curation.merge, mine, other, body.author)
 
     @router.post("/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
                  summary="Take a correction back", **write)
@@ -126,14 +130,9 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
 
     @router.post("/api/objects/{object_id}/relabel", summary="Say what an object is", **write)
     async def relabel_object(object_id: Id, body: Relabelling) -> dict[str, Any]:
-        """A relabel of the object's latest observation (a correction belongs to what was
-        seen, so it outlives a rebuild of the belief): the object is named by it."""
-        believed = await run_in_threadpool(objects.find_one, {"_id": object_id},
-                                           {"last_cluster": 1})
-        if believed is None:
-            raise NotFound("object", object_id)
-        return await corrected(curation.relabel, believed["last_cluster"], body.label,
-                               body.author)
+        """A relabel of the object's latest observation: the object is named by it."""
+        (latest,) = await run_in_threadpool(latest_observations, object_id)
+        return await corrected(curation.relabel, latest, body.label, body.author)
 
     @router.get("/api/corrections", summary="The corrections, newest first",
                 tags=["corrections"], responses=READ_ERRORS)

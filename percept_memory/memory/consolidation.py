@@ -161,7 +161,7 @@ class Consolidation:
         if objects:
             self.objects.bulk_write(objects, session=session)
         later.add(events, links)
-        asked = {c.id: same_as(c.annotations) for c in kept if same_as(c.annotations)}
+        asked = {c.id: others for c in kept if (others := same_as(c.annotations))}
         if asked or any(d.lookalikes for d in decisions):
             later.write()  # what follows reads the events and moves the links
         merged: dict = {}  # object -> the object it was merged into

@@ -54,6 +54,7 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Image, LogLine, Scene, datetime_from_timestamp
 from percept_memory.webui.app import create_app
 from percept_memory.webui.facets import facet_counts
+from percept_memory.webui.histogram import scene_histogram
 from percept_memory.webui.scene_log import CHOICES, scene_filter
 
 STAMP = 1_700_000_000_000_000_000
@@ -209,7 +210,7 @@ def facets(count: int, repeat: int) -> dict:
     """The scene log with its facet counts (webui/facets.py) over `count` scenes (200,000 of 5
     clusters: a memory of 1,000,000 clusters), each with a robot of 3, 2 regions of 12, 6
     annotators of 12 and 8 types of 15: unfiltered, by one choice, by two, by a time range;
-    the page's time, and the counts' alone."""
+    the page's time, the counts' alone and the histogram's over time."""
     rng = np.random.default_rng(3)
     step = 365 * 86_400 * 10**9 // count
     with scratch_store() as store:
@@ -235,17 +236,24 @@ def facets(count: int, repeat: int) -> dict:
         for name, query in queries.items():
             given = {key: query.get(key, "") for key in (*CHOICES, "since", "until")}
             matched = scene_filter(given, choices["type"])
-            times = []
+            times, drawn = [], []
             for _ in range(repeat):
                 start = time.perf_counter()
                 counted = facet_counts(store.scenes, matched, choices, CHOICES)
                 times.append((time.perf_counter() - start) * 1000)
+                start = time.perf_counter()
+                histogram = scene_histogram(store.scenes, matched)
+                drawn.append((time.perf_counter() - start) * 1000)
             times.sort()
+            drawn.sort()
             counts[name] = {"median_ms": round(statistics.median(times), 1),
                             "p95_ms": round(times[int(0.95 * (len(times) - 1))], 1),
                             "values_counted": sum(map(len, counted.values())),
                             "not_counted_in_time": sum(n is None for c in counted.values()
-                                                       for n in c.values())}
+                                                       for n in c.values()),
+                            "histogram_median_ms": round(statistics.median(drawn), 1),
+                            "histogram_p95_ms": round(drawn[int(0.95 * (len(drawn) - 1))], 1),
+                            "histogram_drawn": histogram is not None}
         pages = {name: timed(client, "/scenes?" + urlencode(query), repeat)
                  for name, query in queries.items()}
         return {"scenes": count, "facet_counts": counts, "scene_log_page": pages}

@@ -1,5 +1,6 @@
-"""Facet counts on the scene log (webui/facets.py): each value's count is the number of scenes
-it selects with the other filters, read from an index (never a collection scan), capped."""
+"""Facet counts on the scene log and the search page (webui/facets.py): each value's count is
+the number of scenes or clusters it selects with the other filters, read from an index (never
+a collection scan), capped; and the scene log's histogram over time (webui/histogram.py)."""
 
 from __future__ import annotations
 
@@ -7,16 +8,19 @@ import re
 
 import pytest
 from fastapi.testclient import TestClient
+from playwright.sync_api import expect, sync_playwright
 
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
-from percept_memory.webui import facets
+from percept_memory.webui import facets, histogram
 from percept_memory.webui.app import create_app
 from percept_memory.webui.scene_log import CHOICES, scene_filter
 
-from .conftest import LOCAL, ingest_consolidated
+from .conftest import LOCAL, ingest_consolidated, served
+from .test_webui import SCREENSHOTS
+from .test_webui_curation import launch, watched
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +124,48 @@ def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query
     text = client.get("/search", params={**asked}).text
     table = counts["region"]["table"]
     assert f'table ({facets.shown(table)})</option>' in text or table == 0
+
+
+# --- the histogram of scenes over time (webui/histogram.py) ----------------------------------
+
+
+@pytest.mark.parametrize("filters", [{}, {"robot": "tiago"}, {"region": "table"}])
+def test_the_histogram_counts_every_selected_scene_once(memory, filters):
+    given = {name: filters.get(name, "") for name in (*CHOICES, "since", "until")}
+    query = scene_filter(given, choices_of(memory)["type"])
+    drawn = histogram.scene_histogram(memory.scenes, query)
+    assert len(drawn.bars) == histogram.BARS
+    assert sum(bar.scenes for bar in drawn.bars) == memory.scenes.count_documents(query)
+    for bar, after in zip(drawn.bars, drawn.bars[1:], strict=False):
+        assert bar.end == after.start and 0 <= bar.height <= drawn.height
+    assert max(bar.height for bar in drawn.bars) == drawn.height
+    for bar in drawn.bars:  # its link selects what it counts
+        linked = scene_filter({**given, "since": bar.since, "until": bar.until},
+                              choices_of(memory)["type"])
+        assert memory.scenes.count_documents(linked) == bar.scenes
+
+
+def test_no_scenes_no_histogram(memory):
+    assert histogram.scene_histogram(memory.scenes, {"robot": "nobody"}) is None
+
+
+def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/scenes?robot=tiago")
+        bars = tab.locator("figure.histogram a.bar")
+        expect(bars).to_have_count(histogram.BARS)
+        fullest = max(range(histogram.BARS), key=lambda i: int(
+            bars.nth(i).get_attribute("aria-label").split()[0]))
+        scenes = int(bars.nth(fullest).get_attribute("aria-label").split()[0])
+        bars.nth(fullest).focus()
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.locator("figure.histogram").screenshot(path=str(SCREENSHOTS / "histogram.png"))
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        assert "robot=tiago" in tab.url and "since=" in tab.url and "until=" in tab.url
+        expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

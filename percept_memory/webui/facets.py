@@ -69,19 +69,21 @@ def counted(collection: Collection, asked: Mapping[str, Mapping[str, dict]]
         counts[name] = {}
         for start in range(0, len(values), PER_COMMAND):
             some = values[start:start + PER_COMMAND]
-            found = _counts(collection, [asked[name][v] for v in some], deadline)
+            found = counts_of(collection, [asked[name][v] for v in some], deadline, CAP)
             counts[name].update(zip(some, found, strict=True))
     return {name: counts[name] for name in asked}
 
 
-def _counts(collection: Collection, queries: list[dict], deadline: float) -> list[int | None]:
-    """The count of each query, in one command: each query is a pipeline of its own
-    ($unionWith) on its own index, and none waits for a round trip."""
+def counts_of(collection: Collection, queries: list[dict], deadline: float,
+              cap: int | None) -> list[int | None]:
+    """The count of each query (to cap + 1, if a cap is given), in one command: each query is
+    a pipeline of its own ($unionWith) on its own index, and none waits for a round trip;
+    all None when the deadline (time.monotonic) passes first."""
     left_ms = int((deadline - time.monotonic()) * 1000)
     if not queries or left_ms <= 0:
         return [None] * len(queries)
-    first, *rest = [[{"$match": query}, {"$limit": CAP + 1},
-                     {"$group": {"_id": position, "n": {"$sum": 1}}}]
+    limit = [] if cap is None else [{"$limit": cap + 1}]
+    first, *rest = [[{"$match": query}, *limit, {"$group": {"_id": position, "n": {"$sum": 1}}}]
                     for position, query in enumerate(queries)]
     pipeline = first + [{"$unionWith": {"coll": collection.name, "pipeline": p}} for p in rest]
     try:

@@ -22,6 +22,7 @@ from . import facets
 
 BARS = 24
 WIDTH, HEIGHT = 960, 64
+MIN_HEIGHT = 2  # px: a bar with any scene shows, however tall the tallest
 MICROSECOND = 1000  # ns: the finest a page's time field says
 
 
@@ -72,7 +73,7 @@ def scene_histogram(scenes: Collection, query: Mapping) -> Histogram | None:
         return None
     tallest, width = max(counts), WIDTH / BARS
     return Histogram([Bar(a, b, n, round(i * width, 1), round(width - 1, 1),
-                          round(HEIGHT * n / tallest, 1))
+                          round(max(HEIGHT * n / tallest, MIN_HEIGHT if n else 0), 1))
                       for i, (a, b, n) in enumerate(zip(edges, edges[1:], counts,
                                                         strict=False))])
 

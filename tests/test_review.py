@@ -13,7 +13,7 @@ from percept_memory.demo import kitchen_week
 from percept_memory.memory import curation
 from percept_memory.memory.naming import naming_labels
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.types import Classification, Relabel
+from percept_memory.memory.types import Classification, Rejection, Relabel
 from percept_memory.queries.review import review_queue
 from percept_memory.webui.app import create_app
 
@@ -94,7 +94,7 @@ def test_twenty_labels_are_corrected_by_keyboard_from_the_queue(memory, disputed
         for number in range(20):
             tab.keyboard.type(f"thing {number}")
             tab.keyboard.press("Enter")
-            expect(rows.nth(number).locator("[role=status]")).to_have_text("Saved.")
+            expect(rows.nth(number).locator("form.relabel [role=status]")).to_have_text("Saved.")
             if number < 19:
                 expect(rows.nth(number + 1).locator("input[name=label]")).to_be_focused()
         tab.reload()
@@ -105,3 +105,24 @@ def test_twenty_labels_are_corrected_by_keyboard_from_the_queue(memory, disputed
     assert labels == {f"thing {n}" for n in range(20)}
     assert all(isinstance(memory.get_cluster(d.cluster_id).annotations[-1], Relabel)
                for d in queue.doubts)
+
+
+def test_a_detection_is_rejected_from_the_queue_by_keyboard(memory, disputed):
+    queue = review_queue(memory, shown=3)
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/review?shown=3")
+        tab.locator("#author").fill("ana")
+        rows = tab.locator("table.review tbody tr")
+        rows.first.locator("form.reject input[name=reason]").focus()
+        tab.keyboard.type("a reflection")
+        tab.keyboard.press("Tab")  # to "This detection is wrong"
+        tab.keyboard.press("Enter")
+        expect(rows.first.locator("form.reject [role=status]")).to_have_text("Saved.")
+        expect(rows.nth(1).locator("input[name=label]")).to_be_focused()
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+    said = memory.get_cluster(queue.doubts[0].cluster_id).annotations[-1]
+    assert isinstance(said, Rejection) and said.reason == "a reflection"

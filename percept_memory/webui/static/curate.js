@@ -2,7 +2,7 @@
 // API path in its data-api attribute, signed with the author's name (the page's #author field,
 // remembered on this browser) and, once the server asks for it, the write token (#token, kept
 // for the browser session). What the server answers is shown in the form's status line. After
-// a correction the page reloads to show it, or, in a queue (data-then="next"), the next form's
+// a correction the page reloads to show it, or, in a queue (data-then="next"), the next row's
 // first field takes the focus: corrections go one after another from the keyboard.
 const TOKEN = "pmem-token", AUTHOR = "pmem-author";
 const author = document.getElementById("author");
@@ -60,8 +60,7 @@ function done(form) {
     location.reload();
     return;
   }
-  form.closest("tr, li")?.classList.add("corrected");
-  const forms = [...document.querySelectorAll("form.correct[data-then=next]")];
-  const next = forms[forms.indexOf(form) + 1];
-  next?.querySelector("input, button")?.focus();
+  const row = form.closest("tr, li");
+  row?.classList.add("corrected");
+  row?.nextElementSibling?.querySelector("form.correct input, form.correct button")?.focus();
 }

@@ -19,8 +19,11 @@ Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 point
 playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with
 an annotator's error, an object with an event in one in 100): the API's steps and the page.
 
+Then the scene log's facet counts over --facet-scenes scenes (default 200,000: as many as
+1,000,000 clusters of 5 make).
+
 Usage: python bench/webui.py [--repeat N] [--map-days N] [--search-clusters N] [--keep DB]
-                             [--playback-scenes N]
+                             [--playback-scenes N] [--facet-scenes N]
 (--search-clusters 0: no search pages)
 """
 
@@ -48,8 +51,11 @@ from percept_memory.ingest import synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.types import Image, LogLine, Scene
+from percept_memory.memory.types import Image, LogLine, Scene, datetime_from_timestamp
 from percept_memory.webui.app import create_app
+from percept_memory.webui.facets import facet_counts
+from percept_memory.webui.histogram import scene_histogram
+from percept_memory.webui.scene_log import CHOICES, scene_filter
 
 STAMP = 1_700_000_000_000_000_000
 BATCH = 25  # scenes a transaction: a small embedded mongod's cache refuses 200 with crops
@@ -194,6 +200,65 @@ def playback(count: int, repeat: int) -> dict:
         return {"scenes": count, "api": api, "page_following_an_object": page}
 
 
+FACET_VALUES = {"robot": [f"robot{i}" for i in range(3)],
+                "regions": [f"region{i}" for i in range(12)],
+                "annotators": [f"Annotator{i}" for i in range(12)],
+                "types": [f"pm.annotation.Type{i}" for i in range(15)]}
+
+
+def facets(count: int, repeat: int) -> dict:
+    """The scene log with its facet counts (webui/facets.py) over `count` scenes (200,000 of 5
+    clusters: a memory of 1,000,000 clusters), each with a robot of 3, 2 regions of 12, 6
+    annotators of 12 and 8 types of 15: unfiltered, by one choice, by two, by a time range;
+    the page's time, the counts' alone and the histogram's over time."""
+    rng = np.random.default_rng(3)
+    step = 365 * 86_400 * 10**9 // count
+    with scratch_store() as store:
+        for start in range(0, count, 10_000):
+            store.scenes.insert_many([{
+                "_id": ObjectId(), "_type": "pm.scene.Scene", "timestamp": STAMP + i * step,
+                "time": datetime_from_timestamp(STAMP + i * step), "map": "site",
+                "robot": FACET_VALUES["robot"][int(rng.integers(3))], "clusters": [],
+                "summary": {"clusters": 5, "labels": [], **{
+                    key: sorted(rng.choice(FACET_VALUES[key], n, replace=False).tolist())
+                    for key, n in (("regions", 2), ("annotators", 6), ("types", 8))}}}
+                for i in range(start, min(count, start + 10_000))])
+        client = TestClient(create_app(store, Settings(db=store.db.name, consolidator=False)),
+                            base_url="http://127.0.0.1")
+        middle = datetime_from_timestamp(STAMP + count // 2 * step).strftime("%Y-%m-%dT%H:%M")
+        queries = {"unfiltered": {}, "robot": {"robot": "robot1"},
+                   "robot_and_region": {"robot": "robot1", "region": "region3"},
+                   "annotator_and_type": {"annotator": "Annotator2",
+                                          "type": "pm.annotation.Type7"},
+                   "robot_since": {"robot": "robot1", "since": middle}}
+        counts = {}
+        choices = {name: sorted(store.scenes.distinct(key)) for name, key in CHOICES.items()}
+        for name, query in queries.items():
+            given = {key: query.get(key, "") for key in (*CHOICES, "since", "until")}
+            matched = scene_filter(given, choices["type"])
+            times, drawn = [], []
+            for _ in range(repeat):
+                start = time.perf_counter()
+                counted = facet_counts(store.scenes, matched, choices, CHOICES)
+                times.append((time.perf_counter() - start) * 1000)
+                start = time.perf_counter()
+                histogram = scene_histogram(store.scenes, matched)
+                drawn.append((time.perf_counter() - start) * 1000)
+            times.sort()
+            drawn.sort()
+            counts[name] = {"median_ms": round(statistics.median(times), 1),
+                            "p95_ms": round(times[int(0.95 * (len(times) - 1))], 1),
+                            "values_counted": sum(map(len, counted.values())),
+                            "not_counted_in_time": sum(n is None for c in counted.values()
+                                                       for n in c.values()),
+                            "histogram_median_ms": round(statistics.median(drawn), 1),
+                            "histogram_p95_ms": round(drawn[int(0.95 * (len(drawn) - 1))], 1),
+                            "histogram_drawn": histogram is not None}
+        pages = {name: timed(client, "/scenes?" + urlencode(query), repeat)
+                 for name, query in queries.items()}
+        return {"scenes": count, "facet_counts": counts, "scene_log_page": pages}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=30)
@@ -201,6 +266,7 @@ def main() -> None:
     parser.add_argument("--search-clusters", type=int, default=1_000_000)
     parser.add_argument("--keep", metavar="DB", help="build the large memory into DB, keep it")
     parser.add_argument("--playback-scenes", type=int, default=1_000_000)
+    parser.add_argument("--facet-scenes", type=int, default=200_000)
     args = parser.parse_args()
     rng, image = np.random.default_rng(0), kitchen_image()
     big = synthetic.scene(rng, STAMP, clusters=20, image=image)
@@ -234,6 +300,7 @@ def main() -> None:
         result["search_page"] = search_pages(args, big)
     result["solid_views"] = solid_views(args.repeat)
     result["playback"] = playback(args.playback_scenes, args.repeat)
+    result["facets"] = facets(args.facet_scenes, args.repeat)
     print_json(result)
 
 

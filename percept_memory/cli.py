@@ -849,3 +849,111 @@ main.add_command(_ModelCommand(
          "exported is an error that says why.",
     epilog=example("pmem export coco --out kitchen.zip --region table",
                    "pmem export imagefolder --out crops/ --label object --text ketchup")))
+
+
+# --- corrections by people (memory/curation.py) ------------------------------------------------
+
+
+def _object_id(_ctx, param, value: str | None):
+    """An id argument as an ObjectId: a bad one is the command's one-line error."""
+    from bson import ObjectId
+
+    if value is None or ObjectId.is_valid(value):
+        return value and ObjectId(value)
+    raise click.ClickException(f"{param.name}: {value!r} is not an id (24 hexadecimal digits)")
+
+
+def _author_option(command):
+    import getpass
+
+    return click.option("--author", default=getpass.getuser, show_default="your user name",
+                        help="who makes the correction")(command)
+
+
+@main.group()
+def correct() -> None:
+    """Correct what the annotators said of a cluster: relabel it, reject it, merge two objects,
+    undo a correction. Each is stored beside the annotations, with who and when (README:
+    Correcting labels)."""
+
+
+def _made(make, *args) -> None:
+    from percept_memory.memory import curation
+    from percept_memory.memory.store import MemoryStore
+
+    with MemoryStore.open(click.get_current_context().obj) as store:
+        try:
+            made = make(store, *args)
+        except curation.NotCorrectable as error:
+            raise click.ClickException(str(error)) from None
+    click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
+
+
+@correct.command(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
+@click.argument("cluster", callback=_object_id)
+@click.argument("label")
+@_author_option
+def relabel(cluster, label: str, author: str) -> None:
+    """Say what the object seen in CLUSTER is: LABEL, its class or name."""
+    from percept_memory.memory import curation
+
+    _made(curation.relabel, cluster, label, author)
+
+
+@correct.command(epilog=example("pmem correct reject 6b06239e27e307f8fff741bc"))
+@click.argument("cluster", callback=_object_id)
+@click.option("--reason", default="", help="why the detection is wrong")
+@_author_option
+def reject(cluster, reason: str, author: str) -> None:
+    """Say the detection CLUSTER is wrong: no object is there (its map's belief is rebuilt)."""
+    from percept_memory.memory import curation
+
+    _made(curation.reject, cluster, author, reason)
+
+
+@correct.command(epilog=example(
+    "pmem correct merge 6b06239e27e307f8fff741bc 6b06239e27e307f8fff741a0"))
+@click.argument("cluster", callback=_object_id)
+@click.argument("other", callback=_object_id)
+@_author_option
+def merge(cluster, other, author: str) -> None:
+    """Say CLUSTER and OTHER show the same object (their objects are merged)."""
+    from percept_memory.memory import curation
+
+    _made(curation.merge, cluster, other, author)
+
+
+@correct.command(epilog=example(
+    "pmem correct undo 6b06239e27e307f8fff741bc 6b0623a127e307f8fff741c6"))
+@click.argument("cluster", callback=_object_id)
+@click.argument("correction", callback=_object_id)
+@_author_option
+def undo(cluster, correction, author: str) -> None:
+    """Take back the CORRECTION of CLUSTER (the undo is recorded too)."""
+    from percept_memory.memory import curation
+
+    _made(curation.undo, cluster, correction, author)
+
+
+@main.command(epilog=example("pmem corrections --author ana --limit 20"))
+@click.option("--author", help="only the corrections of this person")
+@click.option("--limit", default=50, show_default=True, type=click.IntRange(1, 1000))
+@click.option("--json", "as_json", is_flag=True, help="print them as JSON")
+@click.pass_obj
+def corrections(settings: Settings, author: str | None, limit: int, as_json: bool) -> None:
+    """The corrections people made, newest first: kind, who, when, what, on which cluster."""
+    from percept_memory.memory import curation
+    from percept_memory.memory.store import MemoryStore
+
+    with MemoryStore.open(settings) as store:
+        rows = curation.audit(store, limit, author)
+    if as_json:
+        click.echo(json.dumps(rows, indent=2, default=str))
+        return
+    if not rows:
+        raise click.ClickException("no corrections" + (f" by {author}" if author else ""))
+    for row in rows:
+        what = row["label"] or row["reason"] or row["other"] or row["undoes"] or ""
+        undone = f"  (undone by {row['undone_by']['author']})" if row["undone_by"] else ""
+        click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} cluster "
+                   f"{row['cluster_id']}  {what}{undone}")

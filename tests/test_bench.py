@@ -33,10 +33,11 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
      {"kitchen_week", "robosherlock_ground_truth", "meaning", "at_scale", "ingest"}),
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
+    ("curation.py", ["--days", "1", "--repeat", "2"], {"keyboard", "review_page", "rejection"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",
-                  "--playback-scenes", "3000"],
+                  "--playback-scenes", "3000", "--facet-scenes", "3000"],
      {"scene_page_20_clusters", "depth_png", "map_page", "search_page", "solid_views",
-      "playback"}),
+      "playback", "facets"}),
 ])
 def test_benchmark_prints_its_json(mongo_uri, script, args, keys):
     done = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True,

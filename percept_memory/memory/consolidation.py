@@ -16,7 +16,10 @@ two observations of one object are (identity.Calibration), kept with the belief 
 
 Identity decides on the evidence a cluster arrived with (documents.ARRIVED_KEY): annotations
 appended later by enrichment name the object (naming.py) but never change a past decision, so
-a rebuild decides exactly as the live pipeline did. Names come from naming.py.
+a rebuild decides exactly as the live pipeline did. Names come from naming.py. A cluster a
+person rejected (types/curation.py) is no object: it is left out; a cluster a person said shows
+the same object as an earlier one has the two objects merged; such a correction made after
+its scene was consolidated asks for the map to be rebuilt (memory/curation.py).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
+from .types.curation import rejected, same_as
 from .view import View
 
 MAX_UNSEEN_CANDIDATES = 32
@@ -129,12 +133,15 @@ class Consolidation:
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
                        [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
                  for o, in_view in believed if o["last_cluster"] in seen_as]
-        new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
+        kept = [c for c in scene.clusters if not rejected(c.annotations)]
+        new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
         decisions = resolve(new, known, self.params, calibration)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
-        clusters = {c.id: c for c in scene.clusters}
-        objects, events, links = [], [], []
+        clusters = {c.id: c for c in kept}
+        objects, events, seen_as = [], [], {}
+        links = [UpdateOne({"_id": c.id}, {"$unset": {"object_id": ""}})
+                 for c in scene.clusters if c.id not in clusters and c.object_id is not None]
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
             cluster = None if unseen else clusters.get(decision.key)
@@ -150,14 +157,34 @@ class Consolidation:
                        live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
+                seen_as[cluster.id] = object_id
         if objects:
             self.objects.bulk_write(objects, session=session)
         later.add(events, links)
-        if any(d.lookalikes for d in decisions):
+        asked = {c.id: others for c in kept if (others := same_as(c.annotations))}
+        if asked or any(d.lookalikes for d in decisions):
             later.write()  # what follows reads the events and moves the links
+        merged: dict = {}  # object -> the object it was merged into
         for keep, twin in self._remembered_twice(decisions, clusters, session):
             self._merge(keep, twin, scene, places, session)
+            merged[twin] = keep
+        for keep, twin in self._asked_to_merge(asked, seen_as, session):
+            keep, twin = _after(merged, keep), _after(merged, twin)
+            if keep != twin:
+                self._merge(keep, twin, scene, places, session)
+                merged[twin] = keep
         return decisions
+
+    def _asked_to_merge(self, asked: dict, seen_as: dict, session) -> list:
+        """(object, the object to merge into it): a cluster of this scene is, a person said,
+        the same object as an earlier cluster (types/curation.py: SameObject), whose object
+        identity has decided on by now. One kept apart from the other is merged into it."""
+        earlier = {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
+            {"_id": {"$in": [c for others in asked.values() for c in others]}},
+            {"object_id": 1}, session=session)}
+        return [(seen_as[key], earlier[other]) for key, others in asked.items()
+                for other in others
+                if earlier.get(other) is not None and key in seen_as]
 
     def _remembered_twice(self, decisions: list[Decision], clusters: dict, session) -> list:
         """(object, its twin): an object seen now that looks beyond doubt like another known
@@ -243,6 +270,13 @@ class Consolidation:
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
+
+
+def _after(merged: dict, object_id):
+    """The object an object is now, after the merges of a scene so far."""
+    while object_id in merged:
+        object_id = merged[object_id]
+    return object_id
 
 
 def _observation(cluster: Cluster, arrived: int) -> Observation:

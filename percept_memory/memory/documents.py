@@ -23,6 +23,7 @@ from . import search_keys
 from .errors import NotFound
 from .schema import LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
+from .types.curation import in_force
 
 SEARCH_KEY = "search"  # derived query fields, recomputed on every write
 BLOBS_KEY = "_blobs"  # ids of the GridFS blobs a document refers to
@@ -307,8 +308,9 @@ def scene_key(scene: Scene | Mapping) -> tuple[str, int]:
 def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     """The denormalised query fields of a cluster."""
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
-    labels = {search_keys.normal_label(label) for a in annotations for label in a.labels()} - {""}
-    texts = [text for a in annotations for text in a.texts() if text]
+    said = in_force(annotations)  # a correction taken back is no longer found by its label
+    labels = {search_keys.normal_label(label) for a in said for label in a.labels()} - {""}
+    texts = [text for a in said for text in a.texts() if text]
     position = cluster.position
     return {
         "time": timestamp,

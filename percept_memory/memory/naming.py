@@ -9,6 +9,9 @@ How much an annotation's name counts:
 - whether it is a web lookup's answer (a WebLookup, or what a lookup job appended beside it):
   weak evidence, for the service answers with whatever product the crop resembles, and weaker
   the further the crop's perceptual hash was from the one the cached answer was given for;
+- a person's correction (types/curation.py): the one in force decides what its observation
+  names, whatever the annotators said (a rejected detection names nothing), with a weight
+  no number of annotators' observations reaches;
 - agreement: per observation, each annotator (`source`) counts with diminishing returns (its
   strongest say fully, the next half, the next a quarter...), so two annotators agreeing
   outweigh one saying the same name in several annotations.
@@ -27,8 +30,9 @@ from collections.abc import Iterable, Mapping
 from percept_memory.converters import escape_key, unescape_key
 
 from .search_keys import normal_label
-from .types import Annotation, WebLookup
+from .types import Annotation, Rejection, WebLookup
 from .types.annotations import lookup_annotation_id
+from .types.curation import in_force, verdict
 
 NAMES_KEPT = 3
 DECIMALS = 6
@@ -39,7 +43,11 @@ HALVING_BITS = 4  # ... and half that for every 4 bits between the crop's hash a
 
 def naming_labels(annotations: Iterable) -> Counter:
     """The names one observation's annotations give their object, with their weights."""
-    annotations = [a for a in annotations if isinstance(a, Annotation)]
+    annotations = [a for a in in_force(annotations) if isinstance(a, Annotation)]
+    if (decided := verdict(annotations)) is not None:
+        if isinstance(decided, Rejection) or not (name := normal_label(decided.class_name)):
+            return Counter()
+        return Counter({name: round(decided.naming_weight, DECIMALS)})
     distances = _lookup_distances(annotations)
     said: dict[str, dict[str, list[float]]] = {}  # name -> source -> weights
     for annotation in annotations:

@@ -67,6 +67,9 @@ INDEXES: dict[str, list[IndexModel]] = {
         # with the coordinates: the k nearest are ranked from the index alone (queries/space.py)
         _newest("search.cells", name="cells_newest_xyz",
                 then=("search.x", "search.y", "search.z")),
+        # the clusters people corrected, and only those: the audit (memory/curation.py)
+        IndexModel([("annotations.author", ASCENDING)], name="corrected",
+                   partialFilterExpression={"annotations.author": {"$exists": True}}),
         # and the field indexes a user adds (store.add_field_index): `field:<path>`
     ],
     TERMS: [IndexModel([("grams", ASCENDING)], name="grams")],

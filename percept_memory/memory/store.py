@@ -63,6 +63,7 @@ from .types import Annotation, Cluster, Scene
 
 CLIENT_OPTIONS = {"tz_aware": True, "appname": "percept-memory"}
 ClusterChange = Callable[[Cluster], Cluster | None]
+AfterRewrite = Callable[[list, Cluster, object], None]
 
 
 def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
@@ -350,18 +351,23 @@ class MemoryStore(StoreBase):
         return self.add_annotations(cluster_id, [annotation])[0]
 
     def add_annotations(
-        self, cluster_id: ObjectId, annotations: Sequence[Annotation]
+        self, cluster_id: ObjectId, annotations: Sequence[Annotation],
+        then: AfterRewrite | None = None,
     ) -> list[ObjectId]:
-        """Append several annotations in one transaction, all or none; idempotent by id."""
+        """Append several annotations in one transaction, all or none; idempotent by id.
+        `then(before, after, session)`: more writes in the same transaction, given the
+        cluster's annotations before and the cluster after."""
         annotation_ids = [annotation.ensure_id() for annotation in annotations]
-        self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotations))
+        self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotations),
+                              then)
         return annotation_ids
 
     def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
         """Replace the annotation with the same id on a stored cluster."""
         self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
 
-    def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange) -> None:
+    def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange,
+                         then: AfterRewrite | None = None) -> None:
         """Read, change and write back one cluster in a transaction, keeping `search` current."""
 
         def work(session) -> set[str]:
@@ -383,6 +389,8 @@ class MemoryStore(StoreBase):
                 self._summarise(doc["scene_id"], session)
             elif summary:
                 self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
+            if then is not None:
+                then(before, changed, session)
             return written
 
         self._catalogue(self._transaction(work))

@@ -7,7 +7,6 @@ and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 
 from __future__ import annotations
 
-import secrets
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 
@@ -28,7 +27,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
 
-from . import similar
+from . import curation, review, similar
 from .catalogue import catalogue_router
 from .errors import (
     READ_ERRORS,
@@ -39,7 +38,7 @@ from .errors import (
     store_status,
 )
 from .export_api import export_router
-from .guard import Guard
+from .guard import Guard, authorise
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
@@ -120,7 +119,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         the answer comes once the scenes are durably stored; identity consolidation and
         lookups follow (see GET /api/pipeline), unless `wait=belief`. Scenes stored before
         (same robot and timestamp) keep their ids and come back with `created: false`."""
-        _authorise(request, settings.token)
+        authorise(request, settings.token)
         with service.pipeline.ingesting():  # the server's consolidator waits: the whole request
             body = await _read_body(request, max_bytes)
             try:
@@ -145,6 +144,8 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(cloud_router(store))
     app.include_router(catalogue_router(store))
     app.include_router(similar.routes(store, settings))
+    app.include_router(curation.routes(store, settings))
+    app.include_router(review.routes(store))
 
     @app.get("/api/pipeline", summary="How far the belief of each map is",
              responses=READ_ERRORS)
@@ -194,17 +195,6 @@ def with_scene_schemas(app: FastAPI) -> None:
         return description
 
     app.openapi = openapi  # type: ignore[method-assign]
-
-
-def _authorise(request: Request, token: str | None) -> None:
-    if token is None:
-        return
-    given = request.headers.get("authorization", "")
-    if not given:
-        raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>")
-    scheme, _, value = given.partition(" ")
-    if scheme.lower() != "bearer" or not secrets.compare_digest(value.encode(), token.encode()):
-        raise ApiError(403, "the write token is not valid")
 
 
 async def _read_body(request: Request, max_bytes: int) -> bytes:

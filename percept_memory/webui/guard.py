@@ -23,12 +23,13 @@ import secrets
 import sys
 
 from starlette.datastructures import Headers, MutableHeaders
+from starlette.requests import Request
 from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from percept_memory.memory.settings import Settings
 
-from .errors import error_response
+from .errors import ApiError, error_response
 
 LOOPBACK_HOSTS = "127.0.0.1,localhost,::1"
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}  # HTTP's "safe" methods: they change nothing
@@ -82,6 +83,18 @@ class Guard:
             return error_response(415, f"{method} {path} takes Content-Type: application/json, "
                                        f"not {content_type or 'a body without one'}")
         return None
+
+
+def authorise(request: Request, token: str | None) -> None:
+    """Let a write through when it carries the write token, or none is configured."""
+    if token is None:
+        return
+    given = request.headers.get("authorization", "")
+    if not given:
+        raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>")
+    scheme, _, value = given.partition(" ")
+    if scheme.lower() != "bearer" or not secrets.compare_digest(value.encode(), token.encode()):
+        raise ApiError(403, "the write token is not valid")
 
 
 def names(setting: str) -> set[str]:

@@ -18,8 +18,9 @@ from pymongo import DESCENDING
 from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 
+from . import curation
 from .belief_map import Projection, floor_plan
-from .html import PageError, page, parse_id
+from .html import SCRIPT_CSP, PageError, page, parse_id
 
 EVENTS_SHOWN = 500
 TIMELINE_WIDTH, TIMELINE_HEIGHT, TIMELINE_MARGIN = 960, 80, 8
@@ -64,13 +65,15 @@ def routes(store: MemoryStore) -> APIRouter:
             placed = [e for e in reversed(history) if e.get("position")]
             view, regions = floor_plan(store, believed.get("map"), [e["position"] for e in placed],
                                        TRACK_WIDTH, TRACK_HEIGHT)
-            return believed, history, view, regions, track(view, placed)
+            candidates = curation.merge_candidates(store, believed, history)
+            return believed, history, view, regions, track(view, placed), candidates
 
-        believed, history, view, regions, marks = await run_in_threadpool(load)
+        believed, history, view, regions, marks, candidates = await run_in_threadpool(load)
         return page(request, "object.html", {
             "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
             "view": view, "regions": regions, "track": marks, "timeline": timeline(history),
-        })
+            "merge_candidates": candidates,
+        }, policy=SCRIPT_CSP)  # its correction form's script (curation.py)
 
     return router
 

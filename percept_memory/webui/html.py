@@ -19,6 +19,9 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
+from percept_memory.memory.types import Correction
+from percept_memory.memory.types.curation import in_force, verdict
+
 from . import render
 
 HERE = Path(__file__).parent
@@ -49,7 +52,8 @@ LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 
 templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
 templates.env.filters["time"] = render.time_of
 templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields,
-                             open_fields=render.OPEN_FIELDS)
+                             open_fields=render.OPEN_FIELDS, in_force=in_force, verdict=verdict)
+templates.env.tests["correction"] = lambda a: isinstance(a, Correction)
 
 
 class PageError(Exception):

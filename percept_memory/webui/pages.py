@@ -27,6 +27,7 @@ from percept_memory.queries.engine import QueryEngine
 from . import (
     annotators,
     belief_map,
+    curation,
     enrichment,
     history,
     live,
@@ -117,7 +118,8 @@ def page_routes(store: MemoryStore) -> APIRouter:
         return page(request, "cluster.html", {
             "cluster": cluster, "roi": cluster.hypothesis_of(ImageROI), "scene": scene,
             "object": believed, "events": explained, "names": names,
-        })
+            "versus_truth": curation.versus_truth(cluster),
+        }, policy=SCRIPT_CSP)  # its correction forms' script (curation.py)
 
     @router.get("/img/scenes/{scene_id}/images/{name}")
     async def scene_image(scene_id: str, name: str) -> Response:

@@ -3,10 +3,14 @@ region, annotator (a log line's or an annotation's source) and annotation type. 
 reads one field of the scene document that an index pairs with (timestamp, _id)
 (memory/schema.py): `robot`, `timestamp`, and the inline summary's `regions`, `annotators` and
 `types` (memory/documents.py: scene_summary). The cursor `before` is the (timestamp, id) of the
-last scene shown, so paging stays exact, filtered or not, while scenes arrive.
+last scene shown, so paging stays exact, filtered or not, while scenes arrive. Each value a
+filter offers shows how many scenes it would select with the other filters (facets.py), and a
+histogram of the selected scenes over time sets the time range by its bars (histogram.py).
 """
 
 from __future__ import annotations
+
+from urllib.parse import urlencode
 
 from bson import ObjectId
 from fastapi import APIRouter, Request
@@ -17,6 +21,8 @@ from pymongo import DESCENDING
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.model import canonical_type
 
+from .facets import facet_counts, shown
+from .histogram import Bar, Histogram, scene_histogram
 from .html import LIST_FIELDS, PageError, nanoseconds, page
 
 SCENES_PER_PAGE = 20
@@ -37,10 +43,12 @@ def routes(store: MemoryStore) -> APIRouter:
         filters = {"robot": robot, "region": region, "annotator": annotator, "type": type,
                    "since": since, "until": until}
 
-        def load() -> tuple[list[dict], dict[str, list[str]]]:
+        def load() -> tuple[list[dict], dict[str, list[str]], dict, Histogram | None]:
             choices = {name: sorted(v for v in store.scenes.distinct(key) if v is not None)
                        for name, key in CHOICES.items()}
             query = scene_filter(filters, choices["type"])
+            counts = facet_counts(store.scenes, query, choices, CHOICES)
+            histogram = scene_histogram(store.scenes, query)
             if before:
                 stamp, scene_id = _cursor(before)
                 query = {"$and": [query, {"$or": [
@@ -48,9 +56,9 @@ def routes(store: MemoryStore) -> APIRouter:
                     {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
             found = store.scenes.find(query, LIST_FIELDS).sort(
                 [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
-            return list(found), choices
+            return list(found), choices, counts, histogram
 
-        scenes, choices = await run_in_threadpool(load)
+        scenes, choices, counts, histogram = await run_in_threadpool(load)
         given = {name: value for name, value in filters.items() if value}
         older = None
         if len(scenes) > SCENES_PER_PAGE:
@@ -59,10 +67,16 @@ def routes(store: MemoryStore) -> APIRouter:
             older = {**given, "before": f"{last['timestamp']}-{last['_id']}"}
         return page(request, "scenes.html", {
             "scenes": scenes, "choices": choices, "older": older, "filters": filters,
-            "given": given,
+            "given": given, "counts": counts, "shown": shown, "histogram": histogram,
+            "bar_links": histogram and [_link(given, bar) for bar in histogram.bars],
         })
 
     return router
+
+
+def _link(given: dict[str, str], bar: Bar) -> str:
+    """The scene log with the same filters over the time of one bar of its histogram."""
+    return "/scenes?" + urlencode({**given, "since": bar.since, "until": bar.until})
 
 
 def scene_filter(filters: dict[str, str], stored_types: list[str]) -> dict:

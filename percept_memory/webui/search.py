@@ -4,7 +4,8 @@ GET form whose fields are the query model's (queries/model.py: ClusterQuery), so
 the query, can be shared, and `/search?text=cereal&region=table` asks what
 `/api/clusters?text=cereal&region=table` does. Results show as a grid of crops or as a list, a
 page at a time by the engine's cursor (the k nearest: one page). A query the model refuses
-comes back as the form with each problem named (422), never a 500.
+comes back as the form with each problem named (422), never a 500. Each region and robot
+offered shows how many observations it would select with the rest of the query (facets.py).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from percept_memory.queries.model import MAX_K, ClusterQuery
 from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
+from .facets import cluster_facet_counts, shown
 from .html import PageError, page
 
 PAGE_SIZE = 48
@@ -50,6 +52,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         context = {"view": view, "form": _form(asked), "time_inputs": _time_inputs(asked),
                    "problems": [], "hits": [],
                    "crops": set(), "links": _links(asked, view), "next": None,
+                   "counts": {}, "shown": shown,
                    **await run_in_threadpool(_choices, store)}
         try:
             query = from_params(ClusterQuery, asked if any(k == "limit" for k, _ in asked)
@@ -67,6 +70,10 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             return page(request, "search.html", context, 422)
         context.update(hits=found.items, total=found.total, export=_exported(asked),
                        crops=await run_in_threadpool(with_crops, store, found.items))
+        if query.near is None:  # (the k nearest are not counted by region or robot)
+            context["counts"] = await run_in_threadpool(
+                cluster_facet_counts, engine.runner, store.clusters, query,
+                {"region": context["regions"], "robot": context["robots"]})
         if found.next:
             rest = [(k, v) for k, v in asked if k != "cursor"]
             context["next"] = "/search?" + urlencode([*rest, ("cursor", found.next),

@@ -3,6 +3,8 @@
 classification, detection, ground_truth and text take the most confident annotation of that
 type (the first of equally confident ones); object takes the name the belief state gives the
 object the cluster is believed to be (named from the words of all its observations).
+A person's correction in force (memory/types/curation.py) overrides every source but text:
+its label is the corrected one, its annotator `human:<author>`, and it says it is `corrected`.
 """
 
 from __future__ import annotations
@@ -18,8 +20,10 @@ from percept_memory.memory.types import (
     Cluster,
     Detection,
     GroundTruth,
+    Relabel,
     Text,
 )
+from percept_memory.memory.types.curation import HUMAN, verdict
 
 from .model import LabelSource
 
@@ -31,6 +35,7 @@ class Label:
     name: str
     annotator: str  # the annotation's source, or BELIEF for an object's name
     annotation_id: ObjectId | None = None
+    corrected: bool = False  # a person's correction, not what the source said
 
 
 ANNOTATIONS: dict[str, tuple[type[Annotation], str]] = {
@@ -44,6 +49,8 @@ ANNOTATIONS: dict[str, tuple[type[Annotation], str]] = {
 def label_of(cluster: Cluster, source: LabelSource,
              object_names: Mapping[ObjectId, str]) -> Label | None:
     """The cluster's label from `source`, or None when that source says nothing about it."""
+    if source != "text" and isinstance(decided := verdict(cluster.annotations), Relabel):
+        return Label(decided.class_name, f"{HUMAN}:{decided.author}", decided.id, True)
     if source == "object":
         name = object_names.get(cluster.object_id)
         return Label(name, BELIEF) if name else None

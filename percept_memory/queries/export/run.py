@@ -7,7 +7,8 @@
     export.save(Path("out.zip"))         # or a folder: export.save(Path("out"))
 
 `manifest.json` records the format, the label source, the query, how many clusters were
-exported, how many were skipped and why, and the classes in id order.
+exported (`corrected`: how many of them with a person's label), how many were skipped and why
+(a detection a person rejected is), and the classes in id order.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
+from percept_memory.memory.types.curation import rejected
 
 from .archive import Archive, ChunkSink, FolderArchive, ZipArchive, add_json
 from .coco import Coco
@@ -31,6 +33,7 @@ from .yolo import Yolo
 
 WRITERS: dict[str, type[Writer]] = {"coco": Coco, "yolo": Yolo, "imagefolder": ImageFolder,
                                     "jsonl": Jsonl}
+REJECTED = "rejected by a person"
 PIXELS = {"imagefolder": "crops", "jsonl": None}  # coco and yolo: the query's `images`
 
 
@@ -52,8 +55,9 @@ class Export:
         for group in self.selection.groups():
             items = []
             for cluster in group.clusters:
-                label = label_of(cluster, self.query.label, group.object_names)
-                if label is None:
+                if rejected(cluster.annotations):
+                    writer.skip(REJECTED)
+                elif (label := label_of(cluster, self.query.label, group.object_names)) is None:
                     writer.skip(f"no {self.query.label} label")
                 else:
                     items.append(Item(group.scene, cluster, label))
@@ -104,6 +108,7 @@ class Export:
             "images": self.query.images,
             "query": self.query.model_dump(mode="json", exclude_defaults=True),
             "exported": self.summary.exported,
+            "corrected": self.summary.corrected,
             "skipped": dict(sorted(self.summary.skipped.items())),
             "classes": list(writer.classes),
         }

@@ -30,6 +30,7 @@ class Item:
 @dataclass
 class Summary:
     exported: int = 0
+    corrected: int = 0  # of the exported, those labelled by a person's correction
     skipped: Counter = field(default_factory=Counter)  # reason -> clusters
 
     def skipped_text(self) -> str:
@@ -74,6 +75,7 @@ class Writer(ABC):
     def exported(self, item: Item, ref: dict) -> None:
         """Count the item and write its provenance, `ref` saying where it is in the export."""
         self.summary.exported += 1
+        self.summary.corrected += item.label.corrected
         self.provenance.line({**ref, **provenance(item)})
 
     def skip(self, reason: str, count: int = 1) -> None:
@@ -127,7 +129,8 @@ class Writer(ABC):
 
 
 def provenance(item: Item) -> dict:
-    """Where a training example came from: scene, time, camera pose, place, label source."""
+    """Where a training example came from: scene, time, camera pose, place, label source
+    (`corrected`: the label is a person's correction, the annotator `human:<author>`)."""
     scene, cluster, label = item.scene, item.cluster, item.label
     pose = scene.camera_pose
     return {
@@ -145,4 +148,5 @@ def provenance(item: Item) -> dict:
         "label": label.name,
         "annotator": label.annotator,
         "annotation_id": None if label.annotation_id is None else str(label.annotation_id),
+        "corrected": label.corrected,
     }

@@ -1,0 +1,84 @@
+"""The scene log's histogram of scenes over time: the span of the scenes its filters select,
+in BARS equal stretches, each a bar as tall as its scenes and a link that sets the log's time
+range to it (brushing by link: it works from the keyboard and without a script).
+
+Where the span starts and ends is read from the `newest` index (or a filter's own index paired
+with time, schema.py), and the bars are counted in one command (facets.py's way, without a
+cap: a bar's count is exact), within the facet counts' time budget; a histogram that would
+take longer is left out rather than slowing the page.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+
+from pymongo import ASCENDING, DESCENDING
+from pymongo.collection import Collection
+
+from . import facets
+
+BARS = 24
+WIDTH, HEIGHT = 960, 64
+MIN_HEIGHT = 2  # px: a bar with any scene shows, however tall the tallest
+MICROSECOND = 1000  # ns: the finest a page's time field says
+
+
+@dataclass
+class Bar:
+    start: int  # ns, inclusive
+    end: int  # ns, exclusive
+    scenes: int
+    x: float
+    width: float
+    height: float
+
+    @property
+    def since(self) -> str:
+        return _iso(self.start)
+
+    @property
+    def until(self) -> str:
+        return _iso(self.end - MICROSECOND)  # the log's `until` is inclusive
+
+
+@dataclass
+class Histogram:
+    bars: list[Bar]
+    width: int = WIDTH
+    height: int = HEIGHT
+
+
+def scene_histogram(scenes: Collection, query: Mapping) -> Histogram | None:
+    """The histogram of the scenes the query selects; None when there are none, or when
+    counting them ran out of time."""
+    deadline = time.monotonic() + facets.BUDGET_MS / 1000
+    order = [("timestamp", ASCENDING), ("_id", ASCENDING)]
+    first = scenes.find_one(query, {"timestamp": 1}, sort=order)
+    if first is None:
+        return None
+    last = scenes.find_one(query, {"timestamp": 1},
+                           sort=[(key, DESCENDING) for key, _ in order])
+    # whole microseconds, as the links give them (a bar's link leaves out what its last
+    # microsecond holds beyond the whole one: the log's `until` is to the microsecond)
+    start = first["timestamp"] // MICROSECOND * MICROSECOND
+    step = -(-(last["timestamp"] + MICROSECOND - start) // (BARS * MICROSECOND)) * MICROSECOND
+    edges = [start + i * step for i in range(BARS + 1)]
+    spans = [{**query, "timestamp": {"$gte": a, "$lt": b}}  # within the query's own range
+             for a, b in zip(edges, edges[1:], strict=False)]
+    counts = facets.counts_of(scenes, spans, deadline, cap=None)
+    if None in counts:
+        return None
+    tallest, width = max(counts), WIDTH / BARS
+    return Histogram([Bar(a, b, n, round(i * width, 1), round(width - 1, 1),
+                          round(max(HEIGHT * n / tallest, MIN_HEIGHT if n else 0), 1))
+                      for i, (a, b, n) in enumerate(zip(edges, edges[1:], counts,
+                                                        strict=False))])
+
+
+def _iso(nanoseconds: int) -> str:
+    """A time as the log's `since` and `until` take it, to the microsecond, UTC."""
+    moment = datetime.fromtimestamp(nanoseconds // MICROSECOND / 1_000_000, tz=UTC)
+    return moment.strftime("%Y-%m-%dT%H:%M:%S.%f")

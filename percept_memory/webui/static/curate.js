@@ -1,0 +1,66 @@
+// The correction forms (webui/curation.py). Each form.correct sends its fields as JSON to the
+// API path in its data-api attribute, signed with the author's name (the page's #author field,
+// remembered on this browser) and, once the server asks for it, the write token (#token, kept
+// for the browser session). What the server answers is shown in the form's status line. After
+// a correction the page reloads to show it, or, in a queue (data-then="next"), the next row's
+// first field takes the focus: corrections go one after another from the keyboard.
+const TOKEN = "pmem-token", AUTHOR = "pmem-author";
+const author = document.getElementById("author");
+const token = document.getElementById("token");
+author.value ||= localStorage.getItem(AUTHOR) || "";
+let refused = null;  // the form the server refused for want of a name or a token: Enter in
+// either field sends it again
+for (const field of [author, token]) {
+  field.addEventListener("keydown", (event) => {
+    if (event.key === "Enter" && refused) {
+      event.preventDefault();
+      refused.requestSubmit();
+    }
+  });
+}
+
+for (const form of document.querySelectorAll("form.correct")) {
+  form.addEventListener("submit", send);
+}
+document.querySelector("form.correct[data-then=next] input")?.focus();  // a queue starts here
+
+async function send(event) {
+  event.preventDefault();
+  const form = event.currentTarget;
+  const status = form.querySelector("[role=status]");
+  const body = Object.fromEntries(new FormData(form));
+  body.author = author.value.trim();
+  localStorage.setItem(AUTHOR, body.author);
+  const headers = {"Content-Type": "application/json"};
+  const secret = token.value || sessionStorage.getItem(TOKEN);
+  if (secret) headers.Authorization = `Bearer ${secret}`;
+  status.textContent = "Saving…";
+  const answer = await fetch(form.dataset.api, {method: "POST", headers, body: JSON.stringify(body)});
+  if (answer.ok) {
+    refused = null;
+    if (secret) sessionStorage.setItem(TOKEN, secret);
+    status.textContent = "Saved.";
+    done(form);
+    return;
+  }
+  const {error} = await answer.json();
+  status.textContent = error.problems.map((p) => p.message).join("; ") || error.message;
+  refused = form;
+  if (answer.status === 401 || answer.status === 403) {
+    sessionStorage.removeItem(TOKEN);
+    token.closest("[hidden]")?.removeAttribute("hidden");
+    token.focus();
+  } else if (error.problems.some((p) => p.path === "body.author")) {
+    author.focus();
+  }
+}
+
+function done(form) {
+  if (form.dataset.then !== "next") {
+    location.reload();
+    return;
+  }
+  const row = form.closest("tr, li");
+  row?.classList.add("corrected");
+  row?.nextElementSibling?.querySelector("form.correct input, form.correct button")?.focus();
+}

@@ -1,0 +1,62 @@
+"""`pmem correct ...` and `pmem corrections` against a day of the kitchen week: corrections
+with who made them, and every mistake one line `Error: ...` with exit 1."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from bson import ObjectId
+from click.testing import CliRunner
+
+from percept_memory.cli import main
+from percept_memory.demo import kitchen_week
+from percept_memory.memory.schema import OBJECTS
+
+from .conftest import ingest_consolidated
+
+
+@pytest.fixture(scope="module")
+def env(store, mongo_uri, db_name):
+    ingest_consolidated(store, kitchen_week.generate(days=1).scenes)
+    return {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+
+
+def pmem(env, *args: str):
+    return CliRunner().invoke(main, list(args), env=env)
+
+
+def test_nothing_corrected_yet_says_so(env):
+    result = pmem(env, "corrections")
+    assert result.exit_code == 1 and result.output.strip() == "Error: no corrections"
+
+
+def test_a_relabel_and_its_undo_from_the_command_line(env, store):
+    cluster = store.clusters.find_one({"object_id": {"$ne": None}})
+    made = pmem(env, "correct", "relabel", str(cluster["_id"]), "blue mug", "--author", "ana")
+    assert made.exit_code == 0, made.output
+    kind, correction, _, author = made.output.split()
+    assert (kind, author) == ("relabel", "ana")
+    assert store.db[OBJECTS].find_one({"_id": cluster["object_id"]})["name"] == "blue mug"
+    undone = pmem(env, "correct", "undo", str(cluster["_id"]), correction, "--author", "bo")
+    assert undone.exit_code == 0 and undone.output.startswith("undo ")
+    listed = pmem(env, "corrections", "--json")
+    rows = json.loads(listed.output)
+    assert [r["kind"] for r in rows[:2]] == ["undo", "relabel"]
+    assert rows[1]["undone_by"]["author"] == "bo"
+    assert "(undone by bo)" in pmem(env, "corrections", "--author", "ana").output
+
+
+@pytest.mark.parametrize("args, words", [
+    (["correct", "relabel", "nope", "mug"], "cluster: 'nope' is not an id"),
+    (["correct", "relabel", str(ObjectId()), "mug"], "no cluster"),
+    (["correct", "undo", "CLUSTER", str(ObjectId())], "no correction"),
+    (["correct", "relabel", "CLUSTER", " "], "class_name"),
+    (["correct", "merge", "CLUSTER", "CLUSTER"], "itself"),
+])
+def test_bad_corrections_are_one_line_and_exit_1(env, store, args, words):
+    cluster = str(store.clusters.find_one({"object_id": {"$ne": None}})["_id"])
+    result = pmem(env, *[cluster if a == "CLUSTER" else a for a in args], "--author", "ana")
+    assert result.exit_code == 1, result.output
+    (line,) = result.output.strip().splitlines()
+    assert line.startswith("Error: ") and words in line, line

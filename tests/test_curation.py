@@ -1,0 +1,192 @@
+"""Corrections by people (memory/curation.py) on a day of the kitchen week: names follow a
+relabel at once and go back on undo, a rejection takes the cluster out of the belief through a
+rebuild, the belief built live equals the one rebuilt, exports use the corrected labels."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+
+import pytest
+from bson import ObjectId
+
+from percept_memory.demo import kitchen_week
+from percept_memory.ingest.service import memory_pipeline
+from percept_memory.memory import curation
+from percept_memory.memory.errors import NotFound
+from percept_memory.memory.pipeline import request_rebuild
+from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
+from percept_memory.memory.types import Classification, Rejection, Relabel, SameObject, Undo
+from percept_memory.memory.types.curation import verdict
+from percept_memory.queries.export.model import ExportQuery
+from percept_memory.queries.export.run import Export
+
+from .conftest import ingest_consolidated
+
+
+@pytest.fixture(scope="module")
+def memory(store):
+    ingest_consolidated(store, kitchen_week.generate(days=1).scenes)
+    return store
+
+
+def settle(store) -> None:
+    pipeline = memory_pipeline(store)
+    pipeline.drain(timeout=300)
+    assert not pipeline.pending()
+
+
+def a_classified_cluster(store, skip: int = 0):
+    doc = store.clusters.find({"object_id": {"$ne": None},
+                               "annotations._type": "pm.annotation.Classification",
+                               "annotations.author": {"$exists": False}}).sort("_id", 1).skip(
+        skip).limit(1).next()
+    return store.get_cluster(doc["_id"])
+
+
+def beliefs(store) -> dict:
+    """Each cluster's object, as the names of that object (object ids are made afresh by a
+    rebuild), and every object's names and observations."""
+    objects = {o["_id"]: (tuple(o["names"]), o["observations"])
+               for o in store.db[OBJECTS].find()}
+    return {c["_id"]: objects.get(c.get("object_id"))
+            for c in store.clusters.find({}, {"object_id": 1})}
+
+
+def test_a_relabel_names_the_object_at_once_and_an_undo_takes_it_back(memory):
+    cluster = a_classified_cluster(memory)
+    before = memory.db[OBJECTS].find_one({"_id": cluster.object_id})
+    said = list(cluster.annotations)
+    made = curation.relabel(memory, cluster.id, "Grandma's teapot", author="ana")
+    assert isinstance(made, Relabel) and made.author == "ana" and made.time > 0
+    after = memory.db[OBJECTS].find_one({"_id": cluster.object_id})
+    assert after["name"] == "grandma's teapot" != before["name"]
+    stored = memory.get_cluster(cluster.id)
+    assert stored.annotations[:len(said)] == said  # what annotators said is kept as it was
+    assert stored.annotations[-1] == made
+    assert memory.clusters.find_one({"_id": cluster.id, "search.terms": "teapot"})
+
+    taken_back = curation.undo(memory, cluster.id, made.id, author="bo")
+    assert isinstance(taken_back, Undo) and taken_back.undoes == made.id
+    restored = memory.db[OBJECTS].find_one({"_id": cluster.object_id})
+    assert (restored["names"], restored["label_weights"]) == (before["names"],
+                                                              before["label_weights"])
+    assert not memory.clusters.find_one({"_id": cluster.id, "search.terms": "teapot"})
+    rows = curation.audit(memory)
+    assert [(r["kind"], r["author"]) for r in rows[:2]] == [("undo", "bo"), ("relabel", "ana")]
+    assert rows[1]["undone_by"]["author"] == "bo" and rows[1]["label"] == "Grandma's teapot"
+    assert rows[0]["undoes"] == made.id and rows[0]["cluster_id"] == cluster.id
+
+
+def test_a_rejection_takes_the_cluster_out_of_the_belief_until_undone(memory):
+    cluster = a_classified_cluster(memory, skip=3)
+    map_name = memory.scenes.find_one({"_id": cluster.scene_id})["map"]
+    made = curation.reject(memory, cluster.id, author="ana", reason="a reflection")
+    assert isinstance(made, Rejection)
+    assert memory.db[MAPS].find_one({"_id": map_name})["rebuild"] is True  # same transaction
+    settle(memory)
+    assert memory.clusters.find_one({"_id": cluster.id}).get("object_id") is None
+    assert not memory.db[EVENTS].find_one({"scene_id": cluster.scene_id,
+                                           "cluster_id": cluster.id})
+    curation.undo(memory, cluster.id, made.id, author="ana")
+    settle(memory)
+    assert memory.clusters.find_one({"_id": cluster.id}).get("object_id") is not None
+    assert curation.counts(memory)["reject"] >= 1
+
+
+def two_objects(store, skip: int = 0) -> tuple:
+    """The latest clusters of two objects of one map, not corrected."""
+    first, second = (store.db[OBJECTS].find({"map": {"$exists": True}}).sort("_id", 1)
+                     .skip(skip).limit(2))
+    assert first["map"] == second["map"]
+    return first["last_cluster"], second["last_cluster"]
+
+
+def test_a_merge_makes_two_objects_one_until_undone(memory):
+    a, b = two_objects(memory, skip=2)
+    objects = memory.db[OBJECTS].count_documents({})
+    names = {n for c in (a, b) for n in memory.db[OBJECTS].find_one(
+        {"_id": memory.clusters.find_one({"_id": c})["object_id"]})["label_weights"]}
+    made = curation.merge(memory, a, b, author="ana")
+    assert isinstance(made, SameObject) and made.other in (a, b)
+    settle(memory)
+    linked = {memory.clusters.find_one({"_id": c})["object_id"] for c in (a, b)}
+    assert len(linked) == 1 and memory.db[OBJECTS].count_documents({}) == objects - 1
+    (one,) = linked
+    assert set(memory.db[OBJECTS].find_one({"_id": one})["label_weights"]) == names
+    assert curation.audit(memory, 1)[0]["kind"] == "merge"
+    later = b if made.other == a else a  # the correction is stored on the later cluster
+    curation.undo(memory, later, made.id, author="ana")
+    settle(memory)
+    assert len({memory.clusters.find_one({"_id": c})["object_id"] for c in (a, b)}) == 2
+    assert memory.db[OBJECTS].count_documents({}) == objects
+
+
+def test_a_merge_with_itself_or_an_unknown_cluster_is_refused(memory):
+    a, _ = two_objects(memory)
+    with pytest.raises(curation.NotCorrectable, match="itself"):
+        curation.merge(memory, a, a, author="ana")
+    with pytest.raises(NotFound):
+        curation.merge(memory, a, ObjectId(), author="ana")
+
+
+def test_the_belief_with_corrections_built_live_equals_the_one_rebuilt(memory):
+    relabelled = a_classified_cluster(memory, skip=5)
+    curation.relabel(memory, relabelled.id, "teapot", author="ana")
+    curation.reject(memory, a_classified_cluster(memory, skip=8).id, author="bo")
+    curation.merge(memory, *two_objects(memory, skip=6), author="cy")
+    settle(memory)
+    live = beliefs(memory)
+    assert live[relabelled.id][0][0] == "teapot"
+    request_rebuild(memory)
+    settle(memory)
+    assert beliefs(memory) == live
+
+
+def test_exports_use_corrected_labels_say_so_and_skip_rejected_detections(memory):
+    relabelled = a_classified_cluster(memory, skip=10)
+    scene = memory.get_scene(relabelled.scene_id)
+    (rejected, *_) = [c for c in scene.clusters if c.id != relabelled.id
+                      and c.annotations_of(Classification)]
+    made = curation.relabel(memory, relabelled.id, "mug", author="cy")
+    curation.reject(memory, rejected.id, author="cy")
+    query = ExportQuery(format="jsonl", label="classification", at=scene.timestamp)
+    export = Export(memory, query)
+    data = b"".join(export.zip_stream())
+    archive = zipfile.ZipFile(io.BytesIO(data))
+    manifest = json.loads(archive.read("manifest.json"))
+    records = {r["cluster_id"]: r for r in map(json.loads,
+                                               archive.read("provenance.jsonl").splitlines())}
+    assert records[str(relabelled.id)]["label"] == "mug"
+    assert records[str(relabelled.id)]["corrected"] is True
+    assert records[str(relabelled.id)]["annotator"] == "human:cy"
+    assert records[str(relabelled.id)]["annotation_id"] == str(made.id)
+    assert str(rejected.id) not in records
+    now = memory.get_scene(scene.id).clusters  # (earlier tests may have corrected some)
+    assert manifest["skipped"]["rejected by a person"] == sum(
+        isinstance(verdict(c.annotations), Rejection) for c in now)
+    assert manifest["corrected"] == sum(isinstance(verdict(c.annotations), Relabel)
+                                        for c in now) >= 1
+    others = [r for r in records.values() if not r["corrected"]]
+    assert others and all(r["annotator"] != "human:cy" for r in others)
+    assert all(memory.get_cluster(ObjectId(r["cluster_id"])).annotations_of(Classification)
+               for r in others)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda s, c: curation.relabel(s, c.id, "  ", author="ana"), "class_name"),
+    (lambda s, c: curation.relabel(s, c.id, "mug", author=" "), "author"),
+    (lambda s, c: curation.relabel(s, c.id, "x" * 201, author="ana"), "class_name"),
+    (lambda s, c: curation.undo(s, c.id, ObjectId(), author="ana"), "no correction"),
+])
+def test_bad_corrections_are_refused_naming_why_and_write_nothing(memory, call, message):
+    cluster = a_classified_cluster(memory, skip=12)
+    with pytest.raises(curation.NotCorrectable, match=message):
+        call(memory, cluster)
+    assert memory.get_cluster(cluster.id).annotations == cluster.annotations
+
+
+def test_a_correction_of_a_cluster_not_stored_is_not_found(memory):
+    with pytest.raises(NotFound):
+        curation.relabel(memory, ObjectId(), "mug", author="ana")

@@ -1,0 +1,171 @@
+"""Facet counts on the scene log and the search page (webui/facets.py): each value's count is
+the number of scenes or clusters it selects with the other filters, read from an index (never
+a collection scan), capped; and the scene log's histogram over time (webui/histogram.py)."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+from fastapi.testclient import TestClient
+from playwright.sync_api import expect, sync_playwright
+
+from percept_memory.demo import kitchen_week
+from percept_memory.memory.settings import Settings
+from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.model import ClusterQuery
+from percept_memory.webui import facets, histogram
+from percept_memory.webui.app import create_app
+from percept_memory.webui.scene_log import CHOICES, scene_filter
+
+from .conftest import LOCAL, ingest_consolidated, served
+from .test_webui import SCREENSHOTS
+from .test_webui_curation import launch, watched
+
+
+@pytest.fixture(scope="module")
+def memory(store):
+    scenes = kitchen_week.generate(days=1).scenes
+    for scene in scenes[::3]:
+        scene.robot = "tiago"  # a second robot, with scenes of every region
+    ingest_consolidated(store, scenes)
+    return store
+
+
+def choices_of(store) -> dict[str, list[str]]:
+    return {name: sorted(v for v in store.scenes.distinct(key) if v is not None)
+            for name, key in CHOICES.items()}
+
+
+@pytest.mark.parametrize("filters", [
+    {},
+    {"robot": "tiago"},
+    {"robot": "tiago", "since": "2024-03-04T12:00"},
+    {"region": "table", "annotator": "OCRAnnotator"},
+])
+def test_each_count_is_what_choosing_that_value_would_select(memory, filters):
+    given = {name: filters.get(name, "") for name in (*CHOICES, "since", "until")}
+    choices = choices_of(memory)
+    query = scene_filter(given, choices["type"])
+    counts = facets.facet_counts(memory.scenes, query, choices, CHOICES)
+    assert set(counts) == set(CHOICES)
+    for name, values in choices.items():
+        for value in values:
+            chosen = scene_filter({**given, name: value}, choices["type"])
+            assert counts[name][value] == memory.scenes.count_documents(chosen), (name, value)
+    assert counts["robot"]["tiago"] > 0
+
+
+def plan_stages(plan: dict) -> set[str]:
+    stages = {plan.get("stage")}
+    for key in ("inputStage", "inputStages"):
+        children = plan.get(key, [])
+        for child in children if isinstance(children, list) else [children]:
+            stages |= plan_stages(child)
+    return stages
+
+
+@pytest.mark.parametrize("query", [
+    {"robot": "tiago"},
+    {"summary.regions": "table"},
+    {"summary.annotators": "OCRAnnotator", "timestamp": {"$gte": 0}},
+    {"summary.types": "pm.annotation.Shape", "robot": "tiago"},
+])
+def test_a_count_reads_an_index_not_the_collection(memory, query):
+    explained = memory.db.command("explain", {"aggregate": "scenes", "pipeline": [
+        {"$match": query}, {"$limit": facets.CAP + 1}, {"$group": {"_id": 1, "n": {"$sum": 1}}}],
+        "cursor": {}}, verbosity="queryPlanner")
+    winning = explained.get("queryPlanner") or explained["stages"][0]["$cursor"]["queryPlanner"]
+    stages = plan_stages(winning["winningPlan"])
+    assert "COLLSCAN" not in stages and stages & {"IXSCAN", "COUNT_SCAN"}, stages
+
+
+def test_counts_stop_at_the_cap(memory, monkeypatch):
+    monkeypatch.setattr(facets, "CAP", 5)
+    choices = choices_of(memory)
+    counts = facets.facet_counts(memory.scenes, {}, choices, CHOICES)
+    assert counts["robot"]["tiago"] == 6 and facets.shown(6) == "5+"
+    assert facets.shown(3) == "3" and facets.shown(None) == ""
+
+
+def test_the_scene_log_shows_the_counts_beside_the_values(memory):
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    text = client.get("/scenes", params={"region": "table"}).text
+    tiago = memory.scenes.count_documents({"robot": "tiago", "summary.regions": "table"})
+    assert re.search(rf'<option value="tiago">tiago \({tiago}\)</option>', text)
+    everywhere = memory.scenes.count_documents({})
+    region = re.search(r'<option value="table" selected>table \((\d+)\)</option>', text)
+    assert int(region[1]) == memory.scenes.count_documents({"summary.regions": "table"})
+    assert int(region[1]) < everywhere
+
+
+def test_counts_left_when_the_time_budget_runs_out_show_no_number(memory, monkeypatch):
+    monkeypatch.setattr(facets, "BUDGET_MS", 0)
+    counts = facets.facet_counts(memory.scenes, {}, choices_of(memory), CHOICES)
+    assert all(n is None for values in counts.values() for n in values.values())
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    assert '<option value="tiago">tiago</option>' in client.get("/scenes").text
+
+
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"text": "cup", "robot": "tiago"},
+                                   {"region": ["table", "shelf"]}])
+def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query(memory,
+                                                                                  asked):
+    engine = QueryEngine(memory)
+    choices = {"region": sorted(memory.clusters.distinct("search.region")),
+               "robot": sorted(memory.clusters.distinct("search.robot"))}
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters,
+                                         ClusterQuery(**asked), choices)
+    for name, values in choices.items():
+        for value in values:
+            expected = engine.clusters(**{**asked, name: [value], "limit": 0, "count": True}).total
+            assert counts[name][value] == min(expected, facets.CAP + 1), (name, value)
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    text = client.get("/search", params={**asked}).text
+    table = counts["region"]["table"]
+    assert f'table ({facets.shown(table)})</option>' in text or table == 0
+
+
+# --- the histogram of scenes over time (webui/histogram.py) ----------------------------------
+
+
+@pytest.mark.parametrize("filters", [{}, {"robot": "tiago"}, {"region": "table"}])
+def test_the_histogram_counts_every_selected_scene_once(memory, filters):
+    given = {name: filters.get(name, "") for name in (*CHOICES, "since", "until")}
+    query = scene_filter(given, choices_of(memory)["type"])
+    drawn = histogram.scene_histogram(memory.scenes, query)
+    assert len(drawn.bars) == histogram.BARS
+    assert sum(bar.scenes for bar in drawn.bars) == memory.scenes.count_documents(query)
+    for bar, after in zip(drawn.bars, drawn.bars[1:], strict=False):
+        assert bar.end == after.start and 0 <= bar.height <= drawn.height
+    assert max(bar.height for bar in drawn.bars) == drawn.height
+    for bar in drawn.bars:  # its link selects what it counts
+        linked = scene_filter({**given, "since": bar.since, "until": bar.until},
+                              choices_of(memory)["type"])
+        assert memory.scenes.count_documents(linked) == bar.scenes
+
+
+def test_no_scenes_no_histogram(memory):
+    assert histogram.scene_histogram(memory.scenes, {"robot": "nobody"}) is None
+
+
+def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/scenes?robot=tiago")
+        bars = tab.locator("figure.histogram a.bar")
+        expect(bars).to_have_count(histogram.BARS)
+        fullest = max(range(histogram.BARS), key=lambda i: int(
+            bars.nth(i).get_attribute("aria-label").split()[0]))
+        scenes = int(bars.nth(fullest).get_attribute("aria-label").split()[0])
+        bars.nth(fullest).focus()
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.locator("figure.histogram").screenshot(path=str(SCREENSHOTS / "histogram.png"))
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        assert "robot=tiago" in tab.url and "since=" in tab.url and "until=" in tab.url
+        expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

@@ -1,0 +1,275 @@
+"""Corrections over HTTP (webui/curation.py) and in a real headless Chromium, by keyboard: the
+API's writes need the token and JSON from this site, bad input gets the one error shape; the
+cluster, object and audit pages correct, show and undo."""
+
+from __future__ import annotations
+
+import pytest
+from bson import ObjectId
+from fastapi.testclient import TestClient
+from playwright.sync_api import expect, sync_playwright
+
+from percept_memory.demo import kitchen_week
+from percept_memory.memory import curation
+from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.settings import Settings
+from percept_memory.memory.types import Classification, GroundTruth
+from percept_memory.webui import curation as curation_page
+from percept_memory.webui.app import create_app
+
+from .conftest import LOCAL, ingest_consolidated, served
+from .test_webui import CHROMIUM, SCREENSHOTS
+
+JSON = {"content-type": "application/json"}
+
+
+@pytest.fixture(scope="module")
+def memory(store):
+    ingest_consolidated(store, kitchen_week.generate(days=1).scenes)
+    return store
+
+
+@pytest.fixture(scope="module")
+def client(memory):
+    return TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+
+
+def clusters_of_objects(store, count: int, skip: int = 0) -> list:
+    """Clusters of distinct objects no one corrected yet."""
+    found, seen = [], set()
+    for doc in store.clusters.find({"object_id": {"$ne": None},
+                                    "annotations.author": {"$exists": False}},
+                                   {"object_id": 1}).sort("_id", 1).skip(skip):
+        if doc["object_id"] not in seen:
+            seen.add(doc["object_id"])
+            found.append(doc)
+        if len(found) == count:
+            return found
+    raise AssertionError("not enough objects")
+
+
+def test_a_relabel_over_http_names_the_object_and_is_audited(client, memory):
+    (doc,) = clusters_of_objects(memory, 1)
+    answer = client.post(f"/api/clusters/{doc['_id']}/relabel", headers=JSON,
+                         json={"label": "blue mug", "author": "ana"})
+    assert answer.status_code == 201, answer.text
+    made = answer.json()["correction"]
+    assert made["_type"] == "pm.annotation.Relabel" and made["author"] == "ana"
+    assert memory.db[OBJECTS].find_one({"_id": doc["object_id"]})["name"] == "blue mug"
+    audit = client.get("/api/corrections").json()
+    assert audit["corrections"][0]["id"] == made["_id"]
+    assert audit["corrections"][0]["cluster_id"] == str(doc["_id"])
+    assert audit["counts"]["relabel"] >= 1
+    undone = client.post(f"/api/clusters/{doc['_id']}/corrections/{made['_id']}/undo",
+                         headers=JSON, json={"author": "bo"})
+    assert undone.status_code == 201 and undone.json()["correction"]["undoes"] == made["_id"]
+    assert memory.db[OBJECTS].find_one({"_id": doc["object_id"]})["name"] != "blue mug"
+    again = client.post(f"/api/clusters/{doc['_id']}/corrections/{made['_id']}/undo",
+                        headers=JSON, json={"author": "bo"})
+    assert again.status_code == 422 and "in force" in again.json()["error"]["message"] + str(
+        again.json()["error"]["problems"])
+
+
+def test_an_object_is_relabelled_through_its_latest_observation(client, memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=40)
+    believed = memory.db[OBJECTS].find_one({"_id": doc["object_id"]})
+    answer = client.post(f"/api/objects/{believed['_id']}/relabel", headers=JSON,
+                         json={"label": "kettle", "author": "ana"})
+    assert answer.status_code == 201
+    assert memory.db[OBJECTS].find_one({"_id": believed["_id"]})["name"] == "kettle"
+    assert curation.audit(memory, 1)[0]["cluster_id"] == believed["last_cluster"]
+
+
+def error_of(answer, status: int) -> dict:
+    assert answer.status_code == status, answer.text
+    body = answer.json()
+    assert set(body) == {"error"} and body["error"]["status"] == status
+    return body["error"]
+
+
+@pytest.mark.parametrize("body, path", [
+    ({"label": "", "author": "ana"}, "body.label"),
+    ({"label": "mug", "author": "  "}, "body.author"),
+    ({"label": "mug"}, "body.author"),
+    ({"author": "ana"}, "body.label"),
+    ({"label": ["mug"], "author": "ana"}, "body.label"),
+])
+def test_a_bad_relabel_is_a_422_naming_the_field_and_writes_nothing(client, memory, body, path):
+    (doc,) = clusters_of_objects(memory, 1, skip=60)
+    before = memory.clusters.find_one({"_id": doc["_id"]})["annotations"]
+    error = error_of(client.post(f"/api/clusters/{doc['_id']}/relabel", headers=JSON,
+                                 json=body), 422)
+    assert path in [p["path"] for p in error["problems"]]
+    assert memory.clusters.find_one({"_id": doc["_id"]})["annotations"] == before
+
+
+def test_unknown_and_malformed_ids_are_refused_not_crashed_on(client):
+    error_of(client.post(f"/api/clusters/{ObjectId()}/relabel", headers=JSON,
+                         json={"label": "mug", "author": "ana"}), 404)
+    error_of(client.post(f"/api/objects/{ObjectId()}/relabel", headers=JSON,
+                         json={"label": "mug", "author": "ana"}), 404)
+    error_of(client.post("/api/clusters/nope/reject", headers=JSON, json={"author": "ana"}), 422)
+    error_of(client.post("/api/clusters/nope/relabel", headers=JSON, content=b"{"), 422)
+
+
+def test_writes_are_json_from_this_site_only_and_need_the_token(memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=80)
+    path = f"/api/clusters/{doc['_id']}/reject"
+    guarded = TestClient(create_app(memory, Settings(token="s3cret", consolidator=False)),
+                         base_url=LOCAL)
+    error_of(guarded.post(path, data={"author": "ana"}), 415)  # what a plain form sends
+    error_of(guarded.post(path, headers={**JSON, "origin": "https://evil.example"},
+                          json={"author": "ana"}), 403)
+    error_of(guarded.post(path, headers=JSON, json={"author": "ana"}), 401)
+    error_of(guarded.post(path, headers={**JSON, "authorization": "Bearer nope"},
+                          json={"author": "ana"}), 403)
+    assert not memory.clusters.find_one({"_id": doc["_id"], "annotations.author": "ana"})
+    answer = guarded.post(path, headers={**JSON, "authorization": "Bearer s3cret"},
+                          json={"author": "ana", "reason": "a reflection"})
+    assert answer.status_code == 201
+
+
+def test_corrections_are_in_the_openapi_description(client):
+    paths = client.get("/openapi.json").json()["paths"]
+    for path in ("/api/clusters/{cluster_id}/relabel", "/api/clusters/{cluster_id}/reject",
+                 "/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
+                 "/api/objects/{object_id}/relabel"):
+        assert {"401", "403", "415", "422"} <= set(paths[path]["post"]["responses"])
+    assert "/api/corrections" in paths
+
+
+# --- in Chromium, by keyboard ---------------------------------------------------------------
+
+
+def launch(playwright):
+    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=[
+        "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking"])
+
+
+def watched(browser):
+    tab = browser.new_page(viewport={"width": 1280, "height": 900})
+    blocked: list[str] = []
+    tab.on("console", lambda m: blocked.append(m.text) if "Content Security" in m.text
+           else None)
+    return tab, blocked
+
+
+def test_a_cluster_is_relabelled_rejected_and_undone_by_keyboard(memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=100)
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/clusters/{doc['_id']}")
+        tab.locator("#author").focus()
+        tab.keyboard.type("ana")
+        tab.keyboard.press("Tab")  # the label field of the relabel form
+        tab.keyboard.type("green teapot")
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        verdict = tab.locator("p.verdict")
+        expect(verdict).to_contain_text("A person says this is green teapot")
+        expect(tab.locator("#author")).to_have_value("ana")  # remembered
+        object_id = memory.clusters.find_one({"_id": doc["_id"]})["object_id"]
+        assert memory.db[OBJECTS].find_one({"_id": object_id})["name"] == "green teapot"
+        tab.get_by_role("button", name="This detection is wrong").focus()
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        expect(verdict).to_contain_text("detection is wrong")
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.locator("section.curation").screenshot(path=str(SCREENSHOTS / "correct.png"))
+        tab.get_by_role("button", name="Undo rejection").focus()
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        expect(verdict).to_contain_text("green teapot")
+
+        tab.goto(f"{url}/corrections")
+        rows = tab.locator("table.audit tbody tr")
+        expect(rows.first).to_contain_text("undo of")
+        expect(rows.nth(1)).to_contain_text("by ana")  # the rejection, undone by ana
+        tab.screenshot(path=str(SCREENSHOTS / "corrections.png"), full_page=False)
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_with_a_token_the_page_asks_for_it_once(memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=120)
+    app = create_app(memory, Settings(token="s3cret", consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/objects/{doc['object_id']}")
+        tab.locator("#author").fill("ana")
+        tab.locator("form.relabel input[name=label]").focus()
+        tab.keyboard.type("fruit bowl")
+        tab.keyboard.press("Enter")
+        token = tab.locator("#token")
+        expect(token).to_be_focused()
+        expect(tab.locator("form.relabel [role=status]")).to_contain_text("write token")
+        tab.keyboard.type("s3cret")
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        expect(tab.locator("h1")).to_contain_text("fruit bowl")
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_a_cluster_with_a_ground_truth_shows_it_beside_the_predictions(client, memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=140)
+    memory.add_annotation(doc["_id"], GroundTruth(source="PnP09", class_name="Teapot"))
+    cluster = memory.get_cluster(doc["_id"])
+    (predicted, *_) = cluster.annotations_of(Classification)
+    curation.relabel(memory, doc["_id"], "teapot", author="ana")
+    rows = curation_page.versus_truth(memory.get_cluster(doc["_id"]))
+    assert {"source": "ana", "name": "teapot", "confidence": None,
+            "kind": "pm.annotation.Relabel", "true": True} in rows
+    mine = [r for r in rows if r["source"] == predicted.source
+            and r["name"] == predicted.class_name]
+    assert mine and mine[0]["true"] is False  # (the kitchen week has no teapot)
+    text = client.get(f"/clusters/{doc['_id']}").text
+    assert '<strong class="truth">Teapot</strong>' in text
+    assert '<tr class="right"><td>ana</td><td>teapot</td>' in text
+    assert curation_page.versus_truth(memory.get_cluster(
+        clusters_of_objects(memory, 1, skip=150)[0]["_id"])) == []
+
+
+def test_two_objects_are_merged_over_http_and_a_bad_merge_is_refused(client, memory):
+    first, second = memory.db[OBJECTS].find().sort("_id", 1).skip(10).limit(2)
+    error_of(client.post(f"/api/objects/{first['_id']}/merge", headers=JSON,
+                         json={"other": str(ObjectId()), "author": "ana"}), 404)
+    error = error_of(client.post(f"/api/clusters/{first['last_cluster']}/merge", headers=JSON,
+                                 json={"other": str(first["last_cluster"]), "author": "ana"}),
+                     422)
+    assert error["problems"][0]["path"] == "body.other"
+    answer = client.post(f"/api/objects/{first['_id']}/merge", headers=JSON,
+                         json={"other": str(second["_id"]), "author": "ana"})
+    assert answer.status_code == 201
+    made = answer.json()["correction"]
+    assert made["_type"] == "pm.annotation.SameObject"
+    assert {made["other"]} < {str(first["last_cluster"]), str(second["last_cluster"])}
+    assert client.get("/api/corrections?limit=1").json()["corrections"][0]["kind"] == "merge"
+
+
+def test_an_object_is_merged_from_its_page_by_keyboard(memory):
+    cluster = memory.clusters.find_one({"annotations.author": {"$exists": False},
+                                        "object_id": {"$ne": None}}, sort=[("_id", -1)])
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/objects/{cluster['object_id']}")
+        tab.locator("#author").fill("ana")
+        choice = tab.locator("form.merge select[name=other]")
+        choice.focus()
+        tab.keyboard.press("ArrowDown")
+        other = choice.input_value()
+        tab.keyboard.press("Tab")  # to Merge
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+    (row,) = curation.audit(memory, 1)
+    assert row["kind"] == "merge" and row["author"] == "ana"
+    other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
+    this_last = memory.db[OBJECTS].find_one({"_id": cluster["object_id"]})["last_cluster"]
+    assert {row["cluster_id"], row["other"]} == {other_last, this_last}

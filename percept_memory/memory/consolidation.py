@@ -127,7 +127,8 @@ class Consolidation:
         believed = self._candidates(scene, places, session)
         seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
-                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
+                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as],
+                       o["last_seen"])
                  for o, in_view in believed if o["last_cluster"] in seen_as]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in scene.clusters]
         decisions = resolve(new, known, self.params, calibration)

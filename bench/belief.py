@@ -558,6 +558,11 @@ def targets(level: dict[str, Any], timings: list[tuple[int, float]]) -> dict[str
                                        TARGETS["object_ids_per_true_object"], "<="),
         "where_is_right_table": (level["where_is"]["right_table_percent"],
                                  TARGETS["where_is_right_table"], ">="),
+        # the same target over the objects still on the table they were last seen on: the
+        # others were moved unseen, which no memory can know
+        "where_is_right_table_on_last_seen_table": (
+            level["where_is"]["on_last_seen_table_right_percent"],
+            TARGETS["where_is_right_table"], ">="),
         "where_is_within_0.1m_unmoved": (level["where_is"]["unmoved_within_0.1m_percent"],
                                          TARGETS["where_is_within_0.1m_unmoved"], ">="),
         "p95_ms_at_100_objects": (p95, TARGETS["p95_ms_at_100_objects"], "<"),

@@ -16,7 +16,8 @@ globally consistent (no object claimed twice) and runs in milliseconds:
   they are made (`Calibration`), so the model follows the real noise of the sensors, where
   the thesis learnt MLN weights offline from labelled data (6.2.3);
 - the likelihood of each explanation: stay ~ look place, move ~ look prior_move,
-  newview ~ place prior_newview; an object out of view can only have moved (formula 6);
+  newview ~ place prior_newview; an object out of view can only have moved (formula 6); of
+  known objects that look alike beyond doubt, the move of the one seen last is likelier;
 - "appear" and "unmatched" are options with their own likelihoods, so the assignment may
   prefer them to a poor match;
 - for every new cluster the normalised likelihoods of all its alternatives are kept, so the

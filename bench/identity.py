@@ -381,8 +381,9 @@ class Run:
             b = remembered[k]
             moved = not np.array_equal(b.true_place, self.world.place[o])
             changed = not np.array_equal(b.true_colour, self.world.colour[o])
-            if moved and changed and not self.known_look(o):
-                expected[i] = (None, "appear")
+            if moved and changed:  # recognisable only by a look observed before
+                look = self.known_look(o, remembered)
+                expected[i] = (None, "appear") if look is None else (look, "move")
             else:
                 expected[i] = (k, "move" if moved else "newview" if changed else "stay")
 
@@ -390,10 +391,11 @@ class Run:
             self.score(score, decisions, known, expected, elapsed)
         self.update(decisions, seen, new)
 
-    def known_look(self, o: int) -> bool:
-        """Whether o shows a look it was observed with before: then moved and changed is
-        still recognisable. Here every change is a new random colour, so never."""
-        return False
+    def known_look(self, o: int, remembered: dict[Any, Belief]) -> Any:
+        """The belief object that last saw o with the look it shows now, if any: moved and
+        changed, o is still recognisable as that one. Here every change is a new random
+        colour, so none."""
+        return None
 
     def score(self, score: Score, decisions, known, expected, elapsed: float) -> None:
         n = len(expected)

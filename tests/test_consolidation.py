@@ -249,3 +249,24 @@ def test_an_objects_place_is_the_mean_of_its_observations_since_it_last_moved(em
     doc = empty_store.db.objects.find_one({"_id": doc["_id"]})
     assert empty_store.db.events.find_one({"cluster_id": moved.id})["explanation"] == "move"
     assert doc["position"][0] == pytest.approx(0.95) and doc["place_count"] == 1
+
+
+def test_candidates_are_given_to_identity_with_when_they_were_last_seen(empty_store,
+                                                                         monkeypatch):
+    """Identity prefers, of two look-alikes, the one seen last (Parameters.superseded): it
+    must know when each candidate was last seen."""
+    from percept_memory.memory import consolidation
+
+    given, resolve = [], consolidation.resolve
+
+    def spy(new, known, *args):
+        given.append({k.key: k.last_seen for k in known})
+        return resolve(new, known, *args)
+
+    monkeypatch.setattr(consolidation, "resolve", spy)
+    red, blue = _box("red", 0.3), _box("blue", 0.7)
+    consolidate_one_by_one(empty_store, [_looks(0.5, red, t=0), _looks(0.5, blue, t=5),
+                                         _looks(0.5, t=9)])
+    ids = [empty_store.get_cluster(c.id).object_id for c in (red, blue)]
+    start = 4_000_000_000_000_000_000
+    assert given[-1] == {ids[0]: start, ids[1]: start + 5}

@@ -3,6 +3,8 @@ three cups, with our own annotation types and positions in metres. No database."
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -118,6 +120,18 @@ def test_a_hidden_object_moved_into_view_is_a_move():
     now = [obs("n-mug", 0.005, 0.0, cup()), obs("n-tea", 0.4, 0.1, ice_tea("peach", 0.5))]
     assert outcome(resolve(now, before, DEFAULTS)) == {"n-mug": ("mug", STAY),
                                                    "n-tea": ("tea", MOVE)}
+
+
+def test_of_two_lookalikes_the_one_seen_last_is_the_one_moved_here():
+    """One object remembered twice: both ids have its look. Moved again, it is the id seen
+    last, not a coin flip."""
+    older = Known("older", obs("old-older", 0.0, 0.0, cup()), False, last_seen=1)
+    later = Known("later", obs("old-later", 3.0, 0.0, cup()), False, last_seen=2)
+    now = [obs("n", 0.5, 0.3, cup())]
+    decided = outcome(resolve(now, [older, later], DEFAULTS))
+    assert decided["n"] == ("later", MOVE)
+    assert outcome(resolve(now, [older, later], replace(DEFAULTS, superseded=1.0)))["n"] == (
+        "older", MOVE)  # without the rule: the first of a tie
 
 
 def test_a_turned_object_is_a_new_view():

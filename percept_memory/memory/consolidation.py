@@ -131,7 +131,8 @@ class Consolidation:
         believed = self._candidates(scene, places, session)
         seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
-                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as])
+                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as],
+                       o["last_seen"])
                  for o, in_view in believed if o["last_cluster"] in seen_as]
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]

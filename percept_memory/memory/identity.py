@@ -16,7 +16,8 @@ globally consistent (no object claimed twice) and runs in milliseconds:
   they are made (`Calibration`), so the model follows the real noise of the sensors, where
   the thesis learnt MLN weights offline from labelled data (6.2.3);
 - the likelihood of each explanation: stay ~ look place, move ~ look prior_move,
-  newview ~ place prior_newview; an object out of view can only have moved (formula 6);
+  newview ~ place prior_newview; an object out of view can only have moved (formula 6); of
+  known objects that look alike beyond doubt, the move of the one seen last is likelier;
 - "appear" and "unmatched" are options with their own likelihoods, so the assignment may
   prefer them to a poor match;
 - for every new cluster the normalised likelihoods of all its alternatives are kept, so the
@@ -70,6 +71,12 @@ class Parameters:
     # looks-the-same odds beyond which another known object is a lookalike (Decision): high,
     # or a crowded world of look-alikes merges distinct objects (bench/belief.py --crowded)
     lookalike_odds: float = 1000.0
+    # Of two known objects the new observation looks like beyond doubt (lookalike_odds), the
+    # one seen last is likelier the one moved here: the move odds of one that looks no
+    # likelier than another seen after it are divided by this. One object remembered twice
+    # (two ids with its look, once given to objects seen side by side, so never merged) is
+    # otherwise a coin flip each time it moves. Tuned on bench/belief.py's tune seeds.
+    superseded: float = 4.0
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
@@ -119,6 +126,7 @@ class Known:
     last: Observation
     in_view: bool
     others: Sequence[Observation] = ()
+    last_seen: int = 0  # when it was last seen (any clock; only the order counts)
 
 
 @dataclass
@@ -391,13 +399,14 @@ class Calibration:
 
 
 def explanations(look: float, place: float, in_view: bool, params: Parameters,
-                 other: float = 1.0) -> dict:
+                 other: float = 1.0, superseded: bool = False) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
     being another object, from the odds of "looks the same" (as it last looked; `other`: as
-    the best of its other known looks) and "is at the same place". Turned to a side seen
+    the best of its other known looks) and "is at the same place"; `superseded`: another
+    candidate seen after it looks at least as alike, beyond doubt. Turned to a side seen
     before is likelier than to a side never seen."""
     seen = max(look, other)
-    move = seen * params.prior_move
+    move = seen * params.prior_move / (params.superseded if superseded else 1.0)
     if not in_view:  # its old place is not seen now: it can only have been moved here
         return {Explanation.MOVE: move}
     return {
@@ -426,6 +435,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
     place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     other_odds, other_look = _other_looks(new, known, calibration, params)
+    superseded = _superseded(np.maximum(look_odds, other_odds).reshape(len(new), len(known)),
+                             known, params.lookalike_odds)
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
@@ -433,7 +444,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         row = []
         for j, candidate in enumerate(known):
             ways = explanations(float(look_odds[i, j]), float(place_odds[i, j]),
-                                candidate.in_view, params, float(other_odds[i, j]))
+                                candidate.in_view, params, float(other_odds[i, j]),
+                                bool(superseded[i, j]))
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
@@ -466,6 +478,17 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
     _learn(calibration, decisions[:len(new)], assigned, looked, places, looked_apart, params)
     return decisions
+
+
+def _superseded(alike: np.ndarray, known: Sequence[Known], beyond_doubt: float
+                ) -> np.ndarray:
+    """For every (new, known) pair whether another known object seen after that one looks at
+    least as alike, with odds beyond doubt (`alike`: the looks' odds)."""
+    seen = np.array([k.last_seen for k in known])
+    later = seen[None, :] > seen[:, None]  # [j, k]: k was seen after j
+    sure = alike >= beyond_doubt
+    return np.any(later[None, :, :] & sure[:, None, :]
+                  & (alike[:, None, :] >= alike[:, :, None]), axis=2)
 
 
 def _other_looks(new: Sequence[Observation], known: Sequence[Known],

@@ -1,0 +1,51 @@
+"""bench/belief.py's ground truth is consistent with itself: it asks for an id only where a
+memory could know it (no database: the run's bookkeeping alone)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+@pytest.fixture
+def run(monkeypatch):
+    """A long run's bookkeeping after real object 0 was seen showing side 0 as id "J", then
+    moved and turned to side 1, never seen, which rightly got a new id "K"."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    import belief
+
+    run = belief.LongRun(seed=1, noise=0.025, decider=None, where_samples=0)
+    run.world.place = {0: np.array([0.2, 0.1])}
+    run.world.side[0] = 1
+    run.last_id, run.last_place, run.last_side = {0: "K"}, {0: np.array([0.2, 0.1])}, {0: 1}
+    run.seen_as = {(0, 0): "J", (0, 1): "K"}
+    run.ids = {"J", "K"}
+    return run
+
+
+def test_moved_and_turned_back_the_object_is_the_id_that_saw_that_side(run):
+    """K never saw side 0: after a move nothing could know K by it, only J (the id that did)."""
+    run.world.place[0] = np.array([3.2, 0.1])
+    run.world.side[0] = 0
+    assert run.expected_id(0) == "J"
+    assert run.known_look(0, {"J": object(), "K": object()}) == "J"
+
+
+def test_turned_where_it_stood_or_moved_as_it_was_the_object_is_its_last_id(run):
+    run.world.side[0] = 0  # turned in place: the place tells
+    assert run.expected_id(0) == "K"
+    run.world.side[0] = 1
+    run.world.place[0] = np.array([3.2, 0.1])  # moved showing the side K saw
+    assert run.expected_id(0) == "K"
+
+
+def test_moved_and_turned_to_a_side_never_seen_is_a_new_object(run):
+    del run.seen_as[0, 0]
+    run.world.place[0] = np.array([3.2, 0.1])
+    run.world.side[0] = 0
+    assert run.expected_id(0) is None
+    assert run.known_look(0, {"K": object()}) is None

@@ -34,9 +34,9 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",
-                  "--playback-scenes", "3000"],
+                  "--playback-scenes", "3000", "--annotator-clusters", "3000"],
      {"scene_page_20_clusters", "depth_png", "map_page", "search_page", "solid_views",
-      "playback"}),
+      "playback", "annotators_page"}),
 ])
 def test_benchmark_prints_its_json(mongo_uri, script, args, keys):
     done = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True,

@@ -28,6 +28,7 @@ from percept_memory.memory.types import (
     timestamp_from_datetime,
 )
 from percept_memory.queries.annotators import GROUND_TRUTH
+from percept_memory.queries.engine import QueryEngine
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ROBOSHERLOCK, served
@@ -167,6 +168,17 @@ def test_the_window_counts_scenes_up_to_a_moment(client):
     assert {h["annotator"] for h in earlier["hours"]} == {"Fast", "Flaky"}
 
 
+@pytest.mark.parametrize("query", [{"robot": "lab"}, {"scenes": 10, "before": EIGHT + HOUR}])
+def test_every_read_of_the_report_and_its_cells_uses_an_index(store, lab, query):
+    for name, extra in (("annotator_report", {}), ("annotator_clusters", {
+            "annotator": "SVM", "reference": GROUND_TRUTH, "said": "cup"})):
+        plans: list = []
+        getattr(QueryEngine(store, explain=plans), name)(**query, **extra)
+        assert plans
+        for plan in plans:
+            assert "COLLSCAN" not in plan["stages"] and plan["indexes"], plan
+
+
 @pytest.mark.parametrize("path, params, problem", [
     ("/api/annotators", {"scenes": "0"}, "scenes"),
     ("/api/annotators", {"scenes": "5001"}, "scenes"),
@@ -225,6 +237,8 @@ def test_the_charts_draw_a_mark_per_hour_with_its_numbers(tab):
     assert fast.locator("g.hour").count() == 3
     assert fast.locator("circle.p50").count() == fast.locator("circle.p95").count() == 3
     assert fast.locator("polyline.p50").count() == 2  # 8 to 9, then 11: a gap at 10
+    assert fast.locator("line.break title").text_content() == (
+        "no scene from 2024-03-04 10:00 to 2024-03-04 11:00 UTC")
     assert fast.locator("g.hour title").first.text_content() == (
         "Fast, 2024-03-04 08:00–09:00 UTC: median 15.0 ms, 95th percentile 19.5 ms (2 runs)")
     flaky = tab.locator('figure.times[data-annotator="Flaky"]')

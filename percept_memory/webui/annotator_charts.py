@@ -1,12 +1,16 @@
 """The annotators page's charts and confusion tables. The charts are drawn on the server as
 SVG (readable without JavaScript, each mark with a hover title and reachable from the
-keyboard): per annotator, its median and 95th percentile time hour by hour, two lines over a
-time axis, broken where an hour has no run; and the share of each hour's scenes in which it
-warned or failed, as bars. All annotators' charts share the window's time axis, so their
-hours line up one above the other."""
+keyboard): per annotator, its median and 95th percentile time hour by hour, two lines broken
+where an hour has no run; and the share of each hour's scenes in which it warned or failed,
+as bars. All charts share one axis of the window's hours, so their hours line up one above
+the other. The axis has a slot per hour with a scene, not a scale of time: a window of the
+latest scenes may span years with long silences (the demo's RoboSherlock scenes of 2016 and
+its kitchen week of 2024), which a time scale would squeeze into two slivers; a silence is
+drawn as a break, its span in its title."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -19,12 +23,12 @@ from percept_memory.queries.results import (
     ConfusionCount,
 )
 
-from . import time_axis
-
 WIDTH = 600
 TIMES_HEIGHT, RATES_HEIGHT = 150, 80  # px, each chart's
 TOP, BOTTOM = 10, 30  # px above the plot, and below it for the time axis
 MAX_BAR = 14  # px: a bar's widest
+MARGIN = 44  # px left and right of the plots: room for the value axis' labels
+MAX_TICKS = 6
 
 
 @dataclass
@@ -47,36 +51,71 @@ class Chart:
 
 
 @dataclass
+class Tick:
+    x: float
+    label: str
+
+
+@dataclass
+class Break:
+    x: float
+    title: str
+
+
+@dataclass
+class HourAxis:
+    width: int
+    ticks: list[Tick]
+    breaks: list[Break]  # between two hours with scenes, more than an hour apart
+
+    @property
+    def ends(self) -> tuple[int, int]:
+        return MARGIN, self.width - MARGIN
+
+
+@dataclass
 class Charts:
-    axis: time_axis.Axis
+    axis: HourAxis
     bar: float  # a rate bar's width
     times: list[Chart]
     rates: list[Chart]
 
 
 def charts(report: AnnotatorReport) -> Charts | None:
-    """The window's charts; None for a window without a scene."""
-    if not report.hours:
+    """The window's charts; None for a window without a log line."""
+    hours = sorted({h.hour for h in report.hours})
+    if not hours:
         return None
-    first = min(h.hour for h in report.hours)
-    end = max(h.hour for h in report.hours) + HOUR_NS
-    axis = time_axis.axis(first, end, end, WIDTH)
-    left, right = axis.ends
-    hour_px = (right - left) * HOUR_NS / (end - first)
-
-    def x(hour: int) -> float:
-        return round(left + (hour + HOUR_NS / 2 - first) / (end - first) * (right - left), 1)
-
+    slot = (WIDTH - 2 * MARGIN) / len(hours)
+    where = {hour: round(MARGIN + (i + 0.5) * slot, 1) for i, hour in enumerate(hours)}
     by_annotator: dict[str, list[AnnotatorHour]] = {}
     for hour in report.hours:
         by_annotator.setdefault(hour.annotator, []).append(hour)
-    bar = round(max(1.0, min(MAX_BAR, hour_px / 2 - 1)), 1)
-    return Charts(axis=axis, bar=bar,
-                  times=[c for hours in by_annotator.values() if (c := _times(hours, x))],
-                  rates=[c for hours in by_annotator.values() if (c := _rates(hours, x, bar))])
+    bar = round(max(1.0, min(MAX_BAR, slot / 2 - 1)), 1)
+    return Charts(axis=_axis(hours, slot), bar=bar,
+                  times=[c for hs in by_annotator.values() if (c := _times(hs, where))],
+                  rates=[c for hs in by_annotator.values() if (c := _rates(hs, where, bar))])
 
 
-def _times(hours: list[AnnotatorHour], x) -> Chart | None:
+def _axis(hours: list[int], slot: float) -> HourAxis:
+    """At most MAX_TICKS labels, evenly among the slots, each with its date where it is not
+    the previous label's; a break wherever hours with scenes are more than an hour apart."""
+    every = math.ceil(len(hours) / MAX_TICKS)
+    ticks, previous = [], None
+    for i in range(0, len(hours), every):
+        moment = datetime.fromtimestamp(hours[i] / 1e9, UTC)
+        form = ("%H:00" if previous and moment.date() == previous.date() else
+                "%b %d %H:00" if previous and moment.year == previous.year else "%Y %b %d %H:00")
+        ticks.append(Tick(round(MARGIN + (i + 0.5) * slot, 1), moment.strftime(form)))
+        previous = moment
+    breaks = [Break(round(MARGIN + i * slot, 1),
+                    f"no scene from {_start(before + HOUR_NS)} to {_start(after)} UTC")
+              for i, (before, after) in enumerate(itertools.pairwise(hours), 1)
+              if after - before > HOUR_NS]
+    return HourAxis(WIDTH, ticks, breaks)
+
+
+def _times(hours: list[AnnotatorHour], x: dict[int, float]) -> Chart | None:
     """Median and 95th percentile per hour with runs; None if it never logged a time."""
     timed = [h for h in hours if h.p95_ms is not None]
     if not timed:
@@ -91,7 +130,7 @@ def _times(hours: list[AnnotatorHour], x) -> Chart | None:
     chart.ticks = [(y(v), f"{v:g} ms") for v in (0, top / 2, top)]
     run: list[Mark] = []
     for i, h in enumerate(timed):
-        mark = Mark(x(h.hour), f"{h.annotator}, {_hour(h.hour)}: median {h.p50_ms:.1f} ms, "
+        mark = Mark(x[h.hour], f"{h.annotator}, {_hour(h.hour)}: median {h.p50_ms:.1f} ms, "
                     f"95th percentile {h.p95_ms:.1f} ms ({h.runs} run{'s' * (h.runs != 1)})",
                     y50=y(h.p50_ms), y95=y(h.p95_ms))
         chart.marks.append(mark)
@@ -103,7 +142,7 @@ def _times(hours: list[AnnotatorHour], x) -> Chart | None:
     return chart
 
 
-def _rates(hours: list[AnnotatorHour], x, bar: float) -> Chart | None:
+def _rates(hours: list[AnnotatorHour], x: dict[int, float], bar: float) -> Chart | None:
     """Per hour, the share of its scenes the annotator warned in, and failed in; None if it
     did neither in the window."""
     if not any(h.warned or h.failed for h in hours):
@@ -115,7 +154,7 @@ def _rates(hours: list[AnnotatorHour], x, bar: float) -> Chart | None:
         if h.warned or h.failed:
             warned, failed = h.warned / h.scenes, h.failed / h.scenes
             chart.marks.append(Mark(
-                x(h.hour), f"{h.annotator}, {_hour(h.hour)}: warned in {h.warned} and failed "
+                x[h.hour], f"{h.annotator}, {_hour(h.hour)}: warned in {h.warned} and failed "
                            f"in {h.failed} of {h.scenes} scene{'s' * (h.scenes != 1)} "
                            f"({warned:.0%}, {failed:.0%})",
                 warned=(round(TOP + plot * (1 - warned), 1), round(plot * warned, 1)),
@@ -135,9 +174,12 @@ def _round_up(value: float) -> float:
     return next(step * power for step in (1, 2, 5, 10) if step * power >= value)
 
 
+def _start(hour: int) -> str:
+    return f"{datetime.fromtimestamp(hour / 1e9, UTC):%Y-%m-%d %H}:00"
+
+
 def _hour(start: int) -> str:
-    begin = datetime.fromtimestamp(start / 1e9, UTC)
-    return f"{begin:%Y-%m-%d %H}:00–{(begin.hour + 1) % 24:02d}:00 UTC"
+    return f"{_start(start)}–{(start // HOUR_NS + 1) % 24:02d}:00 UTC"
 
 
 @dataclass

@@ -657,7 +657,8 @@ EXAMPLES = {
     "playback": ("pmem query playback --robot pr2 --t 2024-03-06T08:30 --step next",),
     "annotator_report": ("pmem query annotator-report --robot pr2 --scenes 100 --json",),
     "annotator_clusters": ('pmem query annotator-clusters --robot pr2 --annotator '
-                           'DeCafClassifier --reference "(ground truth)" --said SiggBottle',),
+                           'DeCafClassifier --reference "(ground truth)" --said SiggBottle '
+                           '--expected SiggBottle',),
 }
 
 

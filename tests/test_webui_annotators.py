@@ -285,6 +285,12 @@ def test_the_marks_and_cells_are_reached_from_the_keyboard(tab):
     tab.keyboard.press("Enter")
     tab.wait_for_load_state("load")
     assert re.match(r"\d+ clusters?", tab.locator("h1").inner_text())
+    tab.go_back()  # the page's sections are links before the charts: skip their marks
+    tab.locator('nav.sections a[href="#confusion"]').focus()
+    tab.keyboard.press("Enter")
+    tab.keyboard.press("Tab")
+    assert tab.evaluate("document.activeElement.getAttribute('href')").startswith(
+        "/annotators/clusters")
 
 
 def test_screenshot_of_the_annotators_page(tab):

@@ -14,6 +14,7 @@ read is bounded however large the memory.
 from __future__ import annotations
 
 from collections import Counter, defaultdict
+from dataclasses import dataclass, field
 from itertools import combinations, product
 
 import numpy as np
@@ -49,6 +50,15 @@ VERDICTS = {name_of(Classification): "class_name", name_of(Detection): "name",
 Cluster = dict[str, set[str]]  # who (annotator or GROUND_TRUTH) -> the classes they gave
 
 
+@dataclass
+class _Hour:
+    """What one annotator logged in one hour: its times, the scenes it warned and failed in."""
+
+    times: list[float] = field(default_factory=list)
+    warned: set = field(default_factory=set)
+    failed: set = field(default_factory=set)
+
+
 def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
     """Per annotator, over the latest scenes: annotations, runs, mean / 95th percentile /
     longest time, warnings and errors; the same hour by hour (median and 95th percentile, the
@@ -57,7 +67,7 @@ def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
     scenes = yield from _window(w)
     durations: dict[str, list[float]] = defaultdict(list)
     totals: dict[str, AnnotatorTotals] = {}
-    hourly: dict[tuple[str, int], list] = defaultdict(lambda: [[], set(), set()])
+    hourly: dict[tuple[str, int], _Hour] = defaultdict(_Hour)
     scenes_in_hour: Counter = Counter()
     problems = []
     for scene in scenes:
@@ -66,17 +76,17 @@ def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
         for line in scene.get("log") or []:
             name = line.get("source") or NO_SOURCE
             total = totals.setdefault(name, AnnotatorTotals(annotator=name))
-            times, warned, failed = hourly[name, hour]
+            logged = hourly[name, hour]
             if isinstance(line.get("duration_ms"), int | float):
                 durations[name].append(line["duration_ms"])
-                times.append(line["duration_ms"])
+                logged.times.append(line["duration_ms"])
             level = line.get("level")
             if level == "warning":
                 total.warnings += 1
-                warned.add(scene["_id"])
+                logged.warned.add(scene["_id"])
             elif level == "error":
                 total.errors += 1
-                failed.add(scene["_id"])
+                logged.failed.add(scene["_id"])
             if level in ("warning", "error") and len(problems) < PROBLEMS_SHOWN:
                 problems.append(ProblemLine(scene_id=scene["_id"], time=scene["timestamp"],
                                             annotator=name, level=level,
@@ -94,9 +104,9 @@ def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
             total = totals.setdefault(name, AnnotatorTotals(annotator=name))
             total.annotations += count.count
     hours = [AnnotatorHour(annotator=name, hour=hour, scenes=scenes_in_hour[hour],
-                           runs=len(times), warned=len(warned), failed=len(failed),
-                           **_percentiles(times))
-             for (name, hour), (times, warned, failed) in sorted(hourly.items())]
+                           runs=len(logged.times), warned=len(logged.warned),
+                           failed=len(logged.failed), **_percentiles(logged.times))
+             for (name, hour), logged in sorted(hourly.items())]
     clusters = yield from _verdicts([s["_id"] for s in scenes])
     return AnnotatorReport(
         scenes=len(scenes), first=scenes[-1]["timestamp"] if scenes else None,

@@ -19,12 +19,18 @@ Then the 3D view of the real RGB-D kitchen frame (its page and its 200,000 point
 playback over a robot's --playback-scenes scenes (default 1,000,000, a year, one in 1,000 with
 an annotator's error, an object with an event in one in 100): the API's steps and the page.
 
+Then the annotators page over --annotator-clusters clusters (default 1,000,000) in scenes of
+the kitchen week's (a scene a minute, ~5 clusters each, their logs; each cluster also named by
+a detector, one in five with its ground truth): the page over the latest 500 and 5,000
+scenes, over 500 scenes midway, a confusion cell's list of clusters, and the JSON API.
+
 Then the scene log's facet counts over --facet-scenes scenes (default 200,000: as many as
 1,000,000 clusters of 5 make).
 
 Usage: python bench/webui.py [--repeat N] [--map-days N] [--search-clusters N] [--keep DB]
-                             [--playback-scenes N] [--facet-scenes N]
-(--search-clusters 0: no search pages)
+                             [--playback-scenes N] [--annotator-clusters N] [--facet-scenes N]
+                             [--only SECTION]
+(--search-clusters 0: no search pages; --only, repeatable: just those sections)
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ import statistics
 import time
 from urllib.parse import urlencode
 
+import bson
 import cv2
 import numpy as np
 from bson import ObjectId
@@ -50,6 +57,8 @@ from percept_memory.demo import kitchen_week
 from percept_memory.ingest import synthetic
 from percept_memory.ingest.rgbd import read_samples
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory import documents
+from percept_memory.memory.schema import CLUSTERS, SCENES
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Image, LogLine, Scene, datetime_from_timestamp
 from percept_memory.webui.app import create_app
@@ -200,6 +209,121 @@ def playback(count: int, repeat: int) -> dict:
         return {"scenes": count, "api": api, "page_following_an_object": page}
 
 
+def scene_pages(rng: np.random.Generator, image, big: Scene, repeat: int) -> dict:
+    """Render times of the scene, cluster and scene log pages and of the images, over `big`
+    and 200 more scenes."""
+    others = [synthetic.scene(rng, STAMP + (i + 1) * 10**9, image=image) for i in range(200)]
+    with scratch_store() as store:
+        scenes = [big, *others]
+        for start in range(0, len(scenes), BATCH):  # one transaction per batch
+            store.put_scenes(scenes[start:start + BATCH])
+        client = TestClient(create_app(store, Settings(db=store.db.name)),
+                            base_url="http://127.0.0.1")
+        result = {
+            "scene_page_20_clusters": timed(client, f"/scenes/{big.id}", repeat),
+            "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}", repeat),
+            "scene_log_page": timed(client, "/", repeat),
+            "scene_log_filtered": timed(client, "/?" + urlencode(
+                {"annotator": "OCRAnnotator", "type": "pm.annotation.Barcode"}), repeat),
+            "crop_png": timed(client, f"/img/clusters/{big.clusters[0].id}/crop", repeat),
+            "scene_thumbnail_png": timed(client, f"/img/scenes/{big.id}/thumb", repeat),
+        }
+        if "depth" in big.images:
+            result["depth_png"] = timed(client, f"/img/scenes/{big.id}/images/depth", repeat)
+        return result
+
+
+def annotator_memory(store, count: int, progress: Progress) -> None:
+    """`count` clusters in copies of the kitchen week's scenes (their logs and their
+    clusters' annotations, crops and colour histograms left out), a scene a minute; each
+    cluster also named by a detector (wrongly one time in ten), one in five with its ground
+    truth. Documents are inserted prepared, in bulk, indexes built afterwards."""
+    rng = np.random.default_rng(3)
+    week = kitchen_week.generate(days=1)
+    for scene in week.scenes:
+        scene.ensure_id()
+    written = documents.scene_documents(week.scenes, threshold=2**30)
+    scenes = [bson.decode(raw.raw) for raw in written.scenes]
+    clusters: dict = {}
+    for raw in written.clusters:
+        doc = bson.decode(raw.raw)
+        doc.pop("hypotheses", None)
+        doc.pop(documents.BLOBS_KEY, None)
+        doc["annotations"] = [a for a in doc["annotations"]
+                              if a["_type"] != "pm.annotation.ColorHistogram"]
+        clusters[doc["_id"]] = doc
+    truths = {scene.id: [kitchen_week.item_of(week.truth.object_at(i, j)).class_name
+                         for j in range(len(scene.clusters))]
+              for i, scene in enumerate(week.scenes)}
+    classes = sorted({c for names in truths.values() for c in names})
+    for collection in (SCENES, CLUSTERS):
+        store.db[collection].drop_indexes()
+    task = progress.add_task("annotator memory", total=count)
+    done, i = 0, 0
+    while done < count:
+        batch_scenes, batch_clusters = [], []
+        while len(batch_clusters) < 5000 and done + len(batch_clusters) < count:
+            template = scenes[i % len(scenes)]
+            stamp = STAMP + i * 60 * 10**9
+            scene_id = ObjectId()
+            copies = []
+            for cluster_id, truth in zip(template["clusters"], truths[template["_id"]],
+                                         strict=True):
+                doc = clusters[cluster_id]
+                named = truth if rng.random() > 0.1 else str(rng.choice(classes))
+                extra = [{"_type": "pm.annotation.Detection", "_id": ObjectId(),
+                          "source": "DeCafClassifier", "name": named}]
+                if rng.random() < 0.2:
+                    extra.append({"_type": "pm.annotation.GroundTruth", "_id": ObjectId(),
+                                  "source": "", "class_name": truth})
+                copies.append({**doc, "_id": ObjectId(), "scene_id": scene_id,
+                               "annotations": doc["annotations"] + extra,
+                               "search": {**doc["search"], "time": stamp}})
+            batch_scenes.append({**template, "_id": scene_id, "timestamp": stamp,
+                                 "clusters": [c["_id"] for c in copies]})
+            batch_clusters += copies
+            i += 1
+        store.scenes.insert_many(batch_scenes, ordered=False)
+        store.clusters.insert_many(batch_clusters, ordered=False)
+        done += len(batch_clusters)
+        progress.advance(task, len(batch_clusters))
+    store.prepare()
+
+
+def annotator_pages(count: int, repeat: int) -> dict:
+    """Render times of the annotators page, a confusion cell's list and the JSON report over
+    a memory of `count` clusters (annotator_memory)."""
+    with scratch_store() as store:
+        start = time.perf_counter()
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                      TimeElapsedColumn(), console=Console(stderr=True),
+                      transient=True) as progress:
+            annotator_memory(store, count, progress)
+        built = time.perf_counter() - start
+        client = TestClient(create_app(store, Settings(db=store.db.name, consolidator=False)),
+                            base_url="http://127.0.0.1")
+        first, last = (store.scenes.find_one(sort=[("timestamp", order)])["timestamp"]
+                       for order in (1, -1))
+        midway = {"scenes": 500, "before": (first + last) // 2}
+        page = client.get("/annotators").text
+        cell = html.unescape(re.search(r'<a href="(/annotators/clusters[^"]+)" data-count',
+                                       page).group(1))
+        report = client.get("/api/annotators").json()
+        return {
+            "clusters": store.clusters.estimated_document_count(),
+            "scenes": store.scenes.estimated_document_count(), "build_s": round(built, 1),
+            "window_500": {"hours": len({h["hour"] for h in report["hours"]}),
+                           "comparisons": len(report["comparisons"]),
+                           "classes_compared": max(len(c["scores"])
+                                                   for c in report["comparisons"])},
+            "page_500_scenes": timed(client, "/annotators", repeat),
+            "page_5000_scenes": timed(client, "/annotators?scenes=5000", repeat),
+            "page_500_midway": timed(client, "/annotators?" + urlencode(midway), repeat),
+            "cell_list": timed(client, cell, repeat),
+            "api_500_scenes": timed(client, "/api/annotators", repeat),
+            "kb_500_scenes": round(len(page.encode()) / 1024, 1)}
+
+
 FACET_VALUES = {"robot": [f"robot{i}" for i in range(3)],
                 "regions": [f"region{i}" for i in range(12)],
                 "annotators": [f"Annotator{i}" for i in range(12)],
@@ -259,6 +383,9 @@ def facets(count: int, repeat: int) -> dict:
         return {"scenes": count, "facet_counts": counts, "scene_log_page": pages}
 
 
+SECTIONS = ("pages", "map", "search", "solid", "playback", "annotators", "facets")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=30)
@@ -266,8 +393,13 @@ def main() -> None:
     parser.add_argument("--search-clusters", type=int, default=1_000_000)
     parser.add_argument("--keep", metavar="DB", help="build the large memory into DB, keep it")
     parser.add_argument("--playback-scenes", type=int, default=1_000_000)
+    parser.add_argument("--annotator-clusters", type=int, default=1_000_000)
     parser.add_argument("--facet-scenes", type=int, default=200_000)
+    parser.add_argument("--only", action="append", choices=SECTIONS,
+                        help="run this section only (repeatable; default: every section)")
     args = parser.parse_args()
+    sections = set(args.only or SECTIONS)
+    result: dict = {"benchmark": "webui"}
     rng, image = np.random.default_rng(0), kitchen_image()
     big = synthetic.scene(rng, STAMP, clusters=20, image=image)
     if image is not None:
@@ -275,32 +407,20 @@ def main() -> None:
     if depth := next(KITCHEN.glob("depth_*.png"), None):
         big.images["depth"] = Image(data=cv2.imread(str(depth), cv2.IMREAD_UNCHANGED),
                                     encoding="mono16")
-    others = [synthetic.scene(rng, STAMP + (i + 1) * 10**9, image=image) for i in range(200)]
-    with scratch_store() as store:
-        scenes = [big, *others]
-        for start in range(0, len(scenes), BATCH):  # one transaction per batch
-            store.put_scenes(scenes[start:start + BATCH])
-        client = TestClient(create_app(store, Settings(db=store.db.name)),
-                            base_url="http://127.0.0.1")
-        result = {
-            "benchmark": "webui",
-            "scene_page_20_clusters": timed(client, f"/scenes/{big.id}", args.repeat),
-            "cluster_page": timed(client, f"/clusters/{big.clusters[0].id}", args.repeat),
-            "scene_log_page": timed(client, "/", args.repeat),
-            "scene_log_filtered": timed(client, "/?" + urlencode(
-                {"annotator": "OCRAnnotator", "type": "pm.annotation.Barcode"}), args.repeat),
-            "crop_png": timed(client, f"/img/clusters/{big.clusters[0].id}/crop", args.repeat),
-            "scene_thumbnail_png": timed(client, f"/img/scenes/{big.id}/thumb", args.repeat),
-        }
-        if "depth" in big.images:
-            result["depth_png"] = timed(client, f"/img/scenes/{big.id}/images/depth",
-                                        args.repeat)
-    result["map_page"] = map_page(args)
-    if args.search_clusters:
+    if "pages" in sections:
+        result.update(scene_pages(rng, image, big, args.repeat))
+    if "map" in sections:
+        result["map_page"] = map_page(args)
+    if "search" in sections and args.search_clusters:
         result["search_page"] = search_pages(args, big)
-    result["solid_views"] = solid_views(args.repeat)
-    result["playback"] = playback(args.playback_scenes, args.repeat)
-    result["facets"] = facets(args.facet_scenes, args.repeat)
+    if "solid" in sections:
+        result["solid_views"] = solid_views(args.repeat)
+    if "playback" in sections:
+        result["playback"] = playback(args.playback_scenes, args.repeat)
+    if "annotators" in sections and args.annotator_clusters:
+        result["annotators_page"] = annotator_pages(args.annotator_clusters, args.repeat)
+    if "facets" in sections and args.facet_scenes:
+        result["facets"] = facets(args.facet_scenes, args.repeat)
     print_json(result)
 
 

@@ -655,6 +655,10 @@ EXAMPLES = {
     "cooccurrence": ("pmem query cooccurrence pringles --by-hour",),
     "timings": ("pmem query timings --robot pr2 --json",),
     "playback": ("pmem query playback --robot pr2 --t 2024-03-06T08:30 --step next",),
+    "annotator_report": ("pmem query annotator-report --robot pr2 --scenes 100 --json",),
+    "annotator_clusters": ('pmem query annotator-clusters --robot pr2 --annotator '
+                           'DeCafClassifier --reference "(ground truth)" --said SiggBottle '
+                           '--expected SiggBottle',),
 }
 
 

@@ -35,9 +35,10 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("curation.py", ["--days", "1", "--repeat", "2"], {"keyboard", "review_page", "rejection"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",
-                  "--playback-scenes", "3000", "--facet-scenes", "3000"],
+                  "--playback-scenes", "3000", "--annotator-clusters", "3000",
+                  "--facet-scenes", "3000"],
      {"scene_page_20_clusters", "depth_png", "map_page", "search_page", "solid_views",
-      "playback", "facets"}),
+      "playback", "annotators_page", "facets"}),
 ])
 def test_benchmark_prints_its_json(mongo_uri, script, args, keys):
     done = subprocess.run([sys.executable, str(BENCH / script), *args], capture_output=True,

@@ -375,6 +375,10 @@ PATHS = [
     ("cooccurrence", {"x": "nutella", "by_hour": True}),
     ("cooccurrence", {"after": "2024-03-06T07:00"}),
     ("timings", {"robot": "pr2"}),
+    ("annotator_report", {"scenes": 100}),
+    ("annotator_report", {"robot": "pr2", "before": "2024-03-06T10:00"}),
+    ("annotator_clusters", {"annotator": "SVMClassifier", "reference": "(ground truth)",
+                            "said": "cereal"}),
 ]
 
 

@@ -33,6 +33,9 @@ VALID = {
     "cooccurrence": {"x": "nutella"},
     "timings": {"robot": "pr2"},
     "playback": {"robot": "pr2", "t": "2024-03-06T08:30", "step": "next"},
+    "annotator_report": {"scenes": "50", "robot": "pr2"},
+    "annotator_clusters": {"robot": "pr2", "annotator": "SVMClassifier",
+                           "reference": "(ground truth)", "said": "cereal"},
 }
 assert set(VALID) == set(QUERIES)
 

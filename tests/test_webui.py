@@ -455,7 +455,8 @@ def test_annotators_and_enrichment_in_the_browser(page, url):
     page.goto(url + "/")
     page.get_by_role("link", name="Annotators", exact=True).click()
     expect(page.locator("table.annotators tbody tr")).not_to_have_count(0)
-    expect(page.locator("table.disagreements")).to_contain_text("MalloryNet")
+    expect(page.locator('section.comparison[data-annotator="MalloryNet"]')).to_contain_text(
+        "cup")
     shot(page, "10-annotators")
     page.get_by_role("link", name="Enrichment", exact=True).click()
     expect(page.locator(".hit-rate")).to_contain_text("66.7 %")
@@ -788,9 +789,14 @@ def test_annotators_page_sums_up_the_logs(client, store, hostile):
     ocr = re.search(r'<tr data-annotator="OCRAnnotator">(.*?)</tr>', body, re.S).group(1)
     assert 'class="num errors">1<' in ocr
     assert f"could not read {escape(HOSTILE)}" in body
-    disagreement = re.search(r'<table class="disagreements">(.*?)</table>', body, re.S).group(1)
+    compared = re.search(r'<section class="comparison" data-annotator="MalloryNet" '
+                         r'data-reference="SVMClassifier">(.*?)</section>', body, re.S).group(1)
+    (cell,) = [html.unescape(href) for href in re.findall(r'<a href="([^"]+)" data-count="1"',
+                                                          compared)
+               if "said=cup" in html.unescape(href) and "expected=%3Cscript" in href]
+    disagreement = client.get(cell).text
     assert f'href="/clusters/{hostile.clusters[0].id}"' in disagreement
-    assert "MalloryNet</strong>: cup" in disagreement
+    assert "MalloryNet</strong>: cup" in disagreement and HOSTILE not in disagreement
 
 
 def test_enrichment_page_shows_the_queue_and_the_cache(client):
@@ -882,7 +888,7 @@ NASTY = ["", " ", "-1", "0", "1e309", "nan", "9" * 30, "\x00", HOSTILE, "$gt", '
          "classification:confidence>nan"]
 PARAMETERS = {
     "/search": [*ClusterQuery.model_fields, "view"], "/map": ["t", "at"],
-    "/annotators": ["scenes", "robot"],
+    "/annotators": ["scenes", "robot", "before"],
     "/scenes": ["robot", "region", "annotator", "type", "since", "until", "before"],
 }
 

@@ -17,14 +17,16 @@ from pydantic import BaseModel
 
 from percept_memory.memory.settings import Settings
 
-from . import questions, stats
+from . import annotators, questions, stats
 from .clusters import find_clusters
 from .model import (
     About,
+    AnnotatorWindow,
     AtTime,
     Between,
     ClusterFilter,
     ClusterQuery,
+    ConfusionCell,
     Cooccurrence,
     History,
     Playback,
@@ -46,6 +48,8 @@ QUERIES: dict[str, tuple[type[BaseModel], Any]] = {
     "cooccurrence": (Cooccurrence, stats.cooccurrence),
     "timings": (Timings, stats.timings),
     "playback": (Playback, playback),
+    "annotator_report": (AnnotatorWindow, annotators.report),
+    "annotator_clusters": (ConfusionCell, annotators.cell),
 }
 """Every query by name: the model of its question and the plan that answers it. The HTTP
 API and the CLI are generated from this table."""

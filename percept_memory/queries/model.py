@@ -457,6 +457,42 @@ class Timings(Strict):
     before: Time | None = None
 
 
+MAX_WINDOW = 5000
+
+
+class AnnotatorWindow(Strict):
+    """The latest scenes (of a robot) at or before a moment: what an annotator report sums up.
+    A count of scenes, not a time span, so that its cost is bounded however busy the robots."""
+
+    scenes: Annotated[int, Field(ge=1, le=MAX_WINDOW)] = Field(
+        default=500, description="how many of the latest scenes")
+    robot: Name | None = None
+    before: Time | None = Field(default=None, description=(
+        "the window's newest scene is at or before this time (default: now)"))
+
+
+class ConfusionCell(AnnotatorWindow):
+    """One cell of a confusion table: the clusters of the window on which `annotator` said
+    `said` and `reference` (another annotator, or "(ground truth)") said `expected`; a class
+    left out means that one said nothing."""
+
+    annotator: Name
+    reference: Name
+    said: Name | None = None
+    expected: Name | None = None
+    limit: Annotated[int, Field(ge=1, le=MAX_PAGE)] = Field(default=100, description=(
+        "how many clusters, newest first"))
+
+    @model_validator(mode="after")
+    def _a_cell(self):
+        if self.annotator == self.reference:
+            raise ValueError("annotator and reference must differ")
+        if self.said is None and self.expected is None:
+            raise ValueError("give said, expected or both: no cell holds clusters neither "
+                             "classified")
+        return self
+
+
 Step = Literal["at", "first", "previous", "next", "last", "event", "failure"]
 
 

@@ -193,3 +193,91 @@ class Frame(BaseModel):
     last: Nanoseconds  # and its last
     previous: Nanoseconds | None = None  # the sequence's scene before this one
     next: Nanoseconds | None = None  # and after it
+
+
+class AnnotatorTotals(BaseModel):
+    """One annotator's work over a window of scenes; times in milliseconds."""
+
+    annotator: str
+    annotations: int = 0
+    runs: int = 0  # log lines with a duration
+    mean_ms: float | None = None
+    p95_ms: float | None = None
+    max_ms: float | None = None
+    warnings: int = 0  # log lines
+    errors: int = 0
+
+
+class AnnotatorHour(BaseModel):
+    """One annotator in one hour (UTC) of the window: its times' median and 95th percentile,
+    and in how many of the hour's scenes it warned or failed."""
+
+    annotator: str
+    hour: Nanoseconds  # the hour's start
+    scenes: int  # of the window in that hour, the annotator's or not
+    runs: int
+    p50_ms: float | None = None
+    p95_ms: float | None = None
+    warned: int = 0  # scenes with a warning line of the annotator
+    failed: int = 0  # scenes with an error line of the annotator
+
+
+class ProblemLine(BaseModel):
+    scene_id: Id
+    time: Nanoseconds  # the scene's
+    annotator: str
+    level: str
+    message: str
+
+
+class ConfusionCount(BaseModel):
+    said: str | None  # the annotator's class (None: it said nothing)
+    expected: str | None  # the reference's
+    clusters: int
+
+
+class ClassScore(BaseModel):
+    """Against the reference: of the clusters the annotator called this class (and the
+    reference classified), the share the reference calls so too (precision); of those the
+    reference calls so, the share the annotator called so (recall)."""
+
+    class_name: str
+    precision: float | None = None
+    recall: float | None = None
+    support: int = 0  # clusters the reference calls this class
+
+
+class Comparison(BaseModel):
+    """The classes an annotator gave against a reference's (another annotator, or the ground
+    truth), on the clusters of the window either classified."""
+
+    annotator: str
+    reference: str
+    clusters: int
+    disagreements: int  # clusters on which they named different classes (or one none)
+    cells: list[ConfusionCount]
+    scores: list[ClassScore]
+
+
+class AnnotatorReport(BaseModel):
+    scenes: int
+    first: Nanoseconds | None = None  # the window's oldest scene
+    last: Nanoseconds | None = None  # and newest
+    annotators: list[AnnotatorTotals]
+    hours: list[AnnotatorHour]
+    problems: list[ProblemLine]  # the latest warning and error lines, newest first
+    comparisons: list[Comparison]
+
+
+class Verdicts(BaseModel):
+    """A cluster and the classes each annotator (and the ground truth) gave it."""
+
+    id: Id
+    scene_id: Id
+    time: Nanoseconds
+    verdicts: dict[str, list[str]]
+
+
+class CellClusters(BaseModel):
+    total: int
+    clusters: list[Verdicts]  # newest first, at most the query's limit

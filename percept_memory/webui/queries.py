@@ -24,7 +24,8 @@ from .errors import READ_ERRORS, WRITE_ERRORS
 
 MAX_QUERY_BYTES = 64 * 1024
 PATHS = {"annotation_stats": "stats/annotations", "cooccurrence": "stats/cooccurrence",
-         "timings": "stats/timings"}
+         "timings": "stats/timings", "annotator_report": "annotators",
+         "annotator_clusters": "annotators/clusters"}
 
 
 def query_router(engine: QueryEngine) -> APIRouter:

@@ -1,0 +1,225 @@
+"""Annotator reports, for whoever debugs an annotator (DESIGN.md, user 3): over a window of the
+latest scenes, per annotator its annotations, times, warnings and errors, in all and hour by
+hour, the latest problem lines, and confusion tables of the classes annotators gave (a
+classification's class, a detection's name) against each other and against the ground truth
+(RoboSherlock's GroundTruth annotations), with precision and recall per class.
+
+Times come from the scenes' log lines (`duration_ms`). Percentiles need every duration, which
+MongoDB 6.0 cannot rank in an aggregation ($percentile came with 7.0), so the window's log
+lines are read once (newest scenes by index) and summed up here; the clusters' verdicts are
+read by the window's scene ids (index `scene`). The window is a count of scenes, so either
+read is bounded however large the memory.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from itertools import combinations, product
+
+import numpy as np
+
+from percept_memory.converters import name_of
+from percept_memory.memory.schema import CLUSTERS, SCENES
+from percept_memory.memory.types import Classification, Detection, GroundTruth
+
+from . import stats
+from .model import AnnotatorWindow, ClusterFilter, ConfusionCell
+from .ops import Aggregate, Find, Plan
+from .results import (
+    AnnotatorHour,
+    AnnotatorReport,
+    AnnotatorTotals,
+    CellClusters,
+    ClassScore,
+    Comparison,
+    ConfusionCount,
+    ProblemLine,
+    Verdicts,
+)
+
+HOUR_NS = 3_600_000_000_000
+PROBLEMS_SHOWN = 100
+MAX_COMPARISONS = 20
+NO_SOURCE = "(no annotator)"
+GROUND_TRUTH = "(ground truth)"
+VERDICTS = {name_of(Classification): "class_name", name_of(Detection): "name",
+            name_of(GroundTruth): "class_name"}
+"""The annotation types that name an object's class, and the field that does."""
+
+Cluster = dict[str, set[str]]  # who (annotator or GROUND_TRUTH) -> the classes they gave
+
+
+@dataclass
+class _Hour:
+    """What one annotator logged in one hour: its times, the scenes it warned and failed in."""
+
+    times: list[float] = field(default_factory=list)
+    warned: set = field(default_factory=set)
+    failed: set = field(default_factory=set)
+
+
+def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
+    """Per annotator, over the latest scenes: annotations, runs, mean / 95th percentile /
+    longest time, warnings and errors; the same hour by hour (median and 95th percentile, the
+    share of scenes warned or failed in); the latest warning and error lines; and the
+    confusion tables of the classes annotators gave, against each other and the ground truth."""
+    scenes = yield from _window(w)
+    durations: dict[str, list[float]] = defaultdict(list)
+    totals: dict[str, AnnotatorTotals] = {}
+    hourly: dict[tuple[str, int], _Hour] = defaultdict(_Hour)
+    scenes_in_hour: Counter = Counter()
+    problems = []
+    for scene in scenes:
+        hour = scene["timestamp"] // HOUR_NS * HOUR_NS
+        scenes_in_hour[hour] += 1
+        for line in scene.get("log") or []:
+            name = line.get("source") or NO_SOURCE
+            total = totals.setdefault(name, AnnotatorTotals(annotator=name))
+            logged = hourly[name, hour]
+            if isinstance(line.get("duration_ms"), int | float):
+                durations[name].append(line["duration_ms"])
+                logged.times.append(line["duration_ms"])
+            level = line.get("level")
+            if level == "warning":
+                total.warnings += 1
+                logged.warned.add(scene["_id"])
+            elif level == "error":
+                total.errors += 1
+                logged.failed.add(scene["_id"])
+            if level in ("warning", "error") and len(problems) < PROBLEMS_SHOWN:
+                problems.append(ProblemLine(scene_id=scene["_id"], time=scene["timestamp"],
+                                            annotator=name, level=level,
+                                            message=str(line.get("message", ""))))
+    for name, values in durations.items():
+        total = totals[name]
+        total.runs, total.mean_ms = len(values), float(np.mean(values))
+        total.p95_ms, total.max_ms = float(np.percentile(values, 95)), float(max(values))
+    if scenes:
+        counted = yield from stats.annotations(ClusterFilter(
+            after=scenes[-1]["timestamp"], before=scenes[0]["timestamp"],
+            robot=[w.robot] if w.robot else []))
+        for count in counted.by_annotator:
+            name = count.annotator or NO_SOURCE
+            total = totals.setdefault(name, AnnotatorTotals(annotator=name))
+            total.annotations += count.count
+    hours = [AnnotatorHour(annotator=name, hour=hour, scenes=scenes_in_hour[hour],
+                           runs=len(logged.times), warned=len(logged.warned),
+                           failed=len(logged.failed), **_percentiles(logged.times))
+             for (name, hour), logged in sorted(hourly.items())]
+    clusters = yield from _verdicts([s["_id"] for s in scenes])
+    return AnnotatorReport(
+        scenes=len(scenes), first=scenes[-1]["timestamp"] if scenes else None,
+        last=scenes[0]["timestamp"] if scenes else None,
+        annotators=sorted(totals.values(), key=lambda t: t.annotator), hours=hours,
+        problems=problems, comparisons=comparisons([c for _, c in clusters]))
+
+
+def cell(q: ConfusionCell) -> Plan[CellClusters]:
+    """The clusters behind one cell of a confusion table of the report on the same window:
+    those on which the annotator said `said` and the reference `expected` (left out: said
+    nothing), newest first."""
+    scenes = yield from _window(q)
+    found = [(doc, verdicts) for doc, verdicts in (yield from _verdicts([s["_id"] for s in scenes]))
+             if (q.said, q.expected) in _pairs(verdicts, q.annotator, q.reference)]
+    return CellClusters(total=len(found), clusters=[
+        Verdicts(id=doc["_id"], scene_id=doc["scene_id"], time=doc["time"],
+                 verdicts={who: sorted(classes) for who, classes in sorted(verdicts.items())})
+        for doc, verdicts in found[:q.limit]])
+
+
+def comparisons(clusters: list[Cluster]) -> list[Comparison]:
+    """Each annotator against the ground truth, then each pair of annotators, on the clusters
+    either classified, if both classified one at least; the ground truth first, then the pairs
+    that disagree most."""
+    annotators = sorted({who for c in clusters for who in c} - {GROUND_TRUTH})
+    truth = any(GROUND_TRUTH in c for c in clusters)
+    pairs = [*((a, GROUND_TRUTH) for a in annotators if truth), *combinations(annotators, 2)]
+    compared = [_compared(clusters, annotator, reference) for annotator, reference in pairs
+                if any(annotator in c and reference in c for c in clusters)]
+    compared.sort(key=lambda c: (c.reference != GROUND_TRUTH, -c.disagreements))
+    return compared[:MAX_COMPARISONS]
+
+
+def _compared(clusters: list[Cluster], annotator: str, reference: str) -> Comparison:
+    cells: Counter = Counter()
+    compared = disagreeing = 0
+    for verdicts in clusters:
+        pairs = _pairs(verdicts, annotator, reference)
+        compared += bool(pairs)
+        disagreeing += any(said != expected for said, expected in pairs)
+        cells.update(pairs)
+    return Comparison(
+        annotator=annotator, reference=reference, clusters=compared, disagreements=disagreeing,
+        cells=[ConfusionCount(said=s, expected=e, clusters=n) for (s, e), n in sorted(
+            cells.items(), key=lambda i: (str(i[0][1]), str(i[0][0])))],
+        scores=_scores(cells))
+
+
+def _pairs(verdicts: Cluster, annotator: str, reference: str) -> set[tuple]:
+    """The (annotator's class, reference's class) pairs of a cluster, None for one that said
+    nothing; none if neither did."""
+    said, expected = verdicts.get(annotator), verdicts.get(reference)
+    if not said and not expected:
+        return set()
+    return set(product(sorted(said or [None]), sorted(expected or [None])))
+
+
+def _scores(cells: Counter) -> list[ClassScore]:
+    """Precision and recall per class: a cluster the reference did not classify counts in
+    neither; one the annotator did not classify misses the reference's class."""
+    classes = sorted({c for pair in cells for c in pair if c is not None})
+    scores = []
+    for name in classes:
+        right = cells[name, name]
+        called = sum(n for (s, e), n in cells.items() if s == name and e is not None)
+        support = sum(n for (_, e), n in cells.items() if e == name)
+        scores.append(ClassScore(class_name=name, precision=right / called if called else None,
+                                 recall=right / support if support else None, support=support))
+    return scores
+
+
+def _percentiles(times: list[float]) -> dict:
+    if not times:
+        return {}
+    p50, p95 = np.percentile(times, [50, 95])
+    return {"p50_ms": float(p50), "p95_ms": float(p95)}
+
+
+def _window(w: AnnotatorWindow) -> Plan[list[dict]]:
+    """The window's scenes, newest first (index `newest`, or `robot_newest`), with their logs."""
+    match: dict = {}
+    if w.robot is not None:
+        match["robot"] = w.robot
+    if w.before is not None:
+        match["timestamp"] = {"$lte": w.before}
+    return (yield Find(SCENES, match, {"timestamp": 1, "log.source": 1, "log.level": 1,
+                                       "log.duration_ms": 1, "log.message": 1},
+                       sort=(("timestamp", -1), ("_id", -1)), limit=w.scenes))
+
+
+def _verdicts(scene_ids: list) -> Plan[list[tuple[dict, Cluster]]]:
+    """The clusters of these scenes that someone classified, newest first, each with who gave
+    which classes."""
+    found = yield Aggregate(CLUSTERS, [
+        {"$match": {"scene_id": {"$in": scene_ids}}},
+        {"$project": {"scene_id": 1, "time": "$search.time", "verdicts": {"$map": {
+            "input": {"$filter": {"input": {"$ifNull": ["$annotations", []]},
+                                  "cond": {"$in": ["$$this._type", list(VERDICTS)]}}},
+            "in": {"type": "$$this._type", "source": "$$this.source",
+                   "class": {"$ifNull": ["$$this.class_name", "$$this.name"]}}}}}},
+        {"$match": {"verdicts.0": {"$exists": True}}},
+        {"$sort": {"time": -1, "_id": -1}},
+    ])
+    out = []
+    for doc in found:
+        verdicts: Cluster = defaultdict(set)
+        for verdict in doc.pop("verdicts"):
+            if verdict.get("class") is None:
+                continue
+            who = GROUND_TRUTH if verdict.get("type") == name_of(GroundTruth) else (
+                verdict.get("source") or NO_SOURCE)
+            verdicts[who].add(str(verdict["class"]))
+        if verdicts:
+            out.append((doc, dict(verdicts)))
+    return out

@@ -314,3 +314,22 @@ def test_the_ground_truth_of_the_real_robosherlock_store(store, client):
     assert (decaf["clusters"], decaf["disagreements"]) == (9, 0)
     assert len(decaf["scores"]) == 7
     assert all(s["precision"] == s["recall"] == 1.0 for s in decaf["scores"])
+
+
+def test_people_s_corrections_in_force_are_a_reference_too(store, client, lab):
+    """A relabel says what a cluster shows; an undone one says nothing."""
+    from percept_memory.memory import curation
+    from percept_memory.queries.annotators import PEOPLE
+
+    svm_cup, svm_bowl = lab[0].clusters[0], lab[1].clusters[0]
+    assert {"cup", "bowl"} == {a.class_name for c in (svm_cup, svm_bowl) for a in c.annotations
+                               if isinstance(a, Classification)}
+    curation.relabel(store, svm_cup.id, "mug", "ana")
+    taken_back = curation.relabel(store, svm_bowl.id, "plate", "ana")
+    curation.undo(store, svm_bowl.id, taken_back.id, "ana")
+    answer = report(client)
+    assert [(c["annotator"], c["reference"]) for c in answer["comparisons"]][:4] == [
+        ("SVM", GROUND_TRUTH), ("DeCaf", GROUND_TRUTH), ("DeCaf", PEOPLE), ("SVM", PEOPLE)]
+    svm = comparison(answer, "SVM", PEOPLE)
+    assert [(c["said"], c["expected"], c["clusters"]) for c in svm["cells"]
+            if c["expected"] is not None] == [("cup", "mug", 1)]

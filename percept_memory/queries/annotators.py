@@ -2,7 +2,8 @@
 latest scenes, per annotator its annotations, times, warnings and errors, in all and hour by
 hour, the latest problem lines, and confusion tables of the classes annotators gave (a
 classification's class, a detection's name) against each other and against the ground truth
-(RoboSherlock's GroundTruth annotations), with precision and recall per class.
+(RoboSherlock's GroundTruth annotations) and the classes people gave in corrections (the
+relabel in force), with precision and recall per class.
 
 Times come from the scenes' log lines (`duration_ms`). Percentiles need every duration, which
 MongoDB 6.0 cannot rank in an aggregation ($percentile came with 7.0), so the window's log
@@ -19,9 +20,10 @@ from itertools import combinations, product
 
 import numpy as np
 
-from percept_memory.converters import name_of
+from percept_memory.converters import decode, name_of
 from percept_memory.memory.schema import CLUSTERS, SCENES
 from percept_memory.memory.types import Classification, Detection, GroundTruth
+from percept_memory.memory.types.curation import Rejection, Relabel, Undo, verdict
 
 from . import stats
 from .model import AnnotatorWindow, ClusterFilter, ConfusionCell
@@ -43,9 +45,12 @@ PROBLEMS_SHOWN = 100
 MAX_COMPARISONS = 20
 NO_SOURCE = "(no annotator)"
 GROUND_TRUTH = "(ground truth)"
+PEOPLE = "(people)"  # the class a person's correction in force gives (memory/types/curation.py)
+REFERENCES = (GROUND_TRUTH, PEOPLE)  # what every annotator is compared with, when present
 VERDICTS = {name_of(Classification): "class_name", name_of(Detection): "name",
             name_of(GroundTruth): "class_name"}
 """The annotation types that name an object's class, and the field that does."""
+CORRECTIONS = [name_of(kind) for kind in (Relabel, Rejection, Undo)]
 
 Cluster = dict[str, set[str]]  # who (annotator or GROUND_TRUTH) -> the classes they gave
 
@@ -129,15 +134,16 @@ def cell(q: ConfusionCell) -> Plan[CellClusters]:
 
 
 def comparisons(clusters: list[Cluster]) -> list[Comparison]:
-    """Each annotator against the ground truth, then each pair of annotators, on the clusters
-    either classified, if both classified one at least; the ground truth first, then the pairs
-    that disagree most."""
-    annotators = sorted({who for c in clusters for who in c} - {GROUND_TRUTH})
-    truth = any(GROUND_TRUTH in c for c in clusters)
-    pairs = [*((a, GROUND_TRUTH) for a in annotators if truth), *combinations(annotators, 2)]
+    """Each annotator against the ground truth and against people's corrections, then each
+    pair of annotators, on the clusters either classified, if both classified one at least; in
+    that order, those that disagree most first."""
+    annotators = sorted({who for c in clusters for who in c} - set(REFERENCES))
+    references = [r for r in REFERENCES if any(r in c for c in clusters)]
+    pairs = [*((a, r) for r in references for a in annotators), *combinations(annotators, 2)]
     compared = [_compared(clusters, annotator, reference) for annotator, reference in pairs
                 if any(annotator in c and reference in c for c in clusters)]
-    compared.sort(key=lambda c: (c.reference != GROUND_TRUTH, -c.disagreements))
+    rank = {reference: i for i, reference in enumerate(REFERENCES)}
+    compared.sort(key=lambda c: (rank.get(c.reference, len(rank)), -c.disagreements))
     return compared[:MAX_COMPARISONS]
 
 
@@ -204,22 +210,27 @@ def _verdicts(scene_ids: list) -> Plan[list[tuple[dict, Cluster]]]:
     found = yield Aggregate(CLUSTERS, [
         {"$match": {"scene_id": {"$in": scene_ids}}},
         {"$project": {"scene_id": 1, "time": "$search.time", "verdicts": {"$map": {
-            "input": {"$filter": {"input": {"$ifNull": ["$annotations", []]},
-                                  "cond": {"$in": ["$$this._type", list(VERDICTS)]}}},
-            "in": {"type": "$$this._type", "source": "$$this.source",
-                   "class": {"$ifNull": ["$$this.class_name", "$$this.name"]}}}}}},
+            "input": {"$filter": {"input": {"$ifNull": ["$annotations", []]}, "cond": {
+                "$in": ["$$this._type", [*VERDICTS, *CORRECTIONS]]}}},
+            "in": {"$cond": [{"$in": ["$$this._type", CORRECTIONS]}, "$$this", {
+                "type": "$$this._type", "source": "$$this.source",
+                "class": {"$ifNull": ["$$this.class_name", "$$this.name"]}}]}}}}},
         {"$match": {"verdicts.0": {"$exists": True}}},
         {"$sort": {"time": -1, "_id": -1}},
     ])
     out = []
     for doc in found:
         verdicts: Cluster = defaultdict(set)
-        for verdict in doc.pop("verdicts"):
-            if verdict.get("class") is None:
+        said = doc.pop("verdicts")
+        corrections = [decode(v) for v in said if "_type" in v]
+        if isinstance(decided := verdict(corrections), Relabel):
+            verdicts[PEOPLE].add(decided.class_name)
+        for given in said:
+            if "_type" in given or given.get("class") is None:
                 continue
-            who = GROUND_TRUTH if verdict.get("type") == name_of(GroundTruth) else (
-                verdict.get("source") or NO_SOURCE)
-            verdicts[who].add(str(verdict["class"]))
+            who = GROUND_TRUTH if given.get("type") == name_of(GroundTruth) else (
+                given.get("source") or NO_SOURCE)
+            verdicts[who].add(str(given["class"]))
         if verdicts:
             out.append((doc, dict(verdicts)))
     return out

@@ -18,7 +18,7 @@ from fastapi.responses import HTMLResponse
 from pydantic import BaseModel, ValidationError
 
 from percept_memory.memory.store import MemoryStore
-from percept_memory.queries.annotators import GROUND_TRUTH
+from percept_memory.queries.annotators import GROUND_TRUTH, PEOPLE
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import MAX_WINDOW, AnnotatorWindow, ConfusionCell
 from percept_memory.queries.ops import QueryError, QueryTimeout
@@ -40,7 +40,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         return page(request, "annotators.html", {
             "report": report, "charts": charts(report), "confusion_table": confusion_table,
             "window": window,
-            "ground_truth": GROUND_TRUTH, "max_window": MAX_WINDOW,
+            "ground_truth": GROUND_TRUTH, "people": PEOPLE, "max_window": MAX_WINDOW,
             "cell_link": lambda comparison, count: "/annotators/clusters?" + urlencode(
                 _params(fixed, annotator=comparison.annotator, reference=comparison.reference,
                         said=count.said, expected=count.expected)),

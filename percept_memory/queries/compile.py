@@ -18,12 +18,14 @@ from collections import defaultdict
 
 from bson import ObjectId
 
+from percept_memory.memory.search_keys import AXES
+
 from .model import ClusterFilter, ClusterQuery
 from .ops import QueryError
-from .space import cells_of_volume, inside
+from .space import Coordinates, cells_of_volume, inside
 from .text import Expansions, TextQuery, all_terms, phrase_pattern
 
-POSITION = "search.position"
+PLACE = Coordinates.scalars(*(f"search.{axis}" for axis in AXES))  # the cells' index holds them
 
 
 def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
@@ -38,7 +40,7 @@ def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
     for volume in (f.box, f.sphere):
         if volume is not None:
             clauses += [{"search.cells": {"$in": cells_of_volume(volume)}},
-                        inside(volume, POSITION)]
+                        inside(volume, PLACE)]
     if text is not None:
         clauses.append({"search.terms": {"$in": all_terms(expansions or {})}})
         for phrase in text.phrases:

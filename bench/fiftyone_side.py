@@ -39,7 +39,7 @@ def box(low, high) -> dict:
 
 
 def match(kind: str, args: dict) -> dict:
-    if kind == "label":
+    if kind in ("label", "label_field"):
         return {"classification.label": args["label"]}
     if kind == "text":
         return {"$text": {"$search": args["word"]}}

@@ -72,7 +72,8 @@ def query_args(rng: np.random.Generator, count: int) -> dict[str, dict]:
     centre = [round(float(v), 4) for v in (*rng.uniform(2, SIDE - 2, 2), rng.uniform(0.5, 1.5))]
     half = 0.5
     return {
-        "label": {"label": LABELS[int(rng.integers(len(LABELS)))]},
+        "label": {"label": (label := LABELS[int(rng.integers(len(LABELS)))])},
+        "label_field": {"label": label},  # ours: as a predicate on the classification's field
         "text": {"word": WORDS[int(rng.integers(len(WORDS)))]},
         "hour": {"after": t, "before": t + HOUR},
         "box": {"low": [c - half for c in centre], "high": [c + half for c in centre]},

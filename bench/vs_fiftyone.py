@@ -10,8 +10,10 @@ makes it), both with their best indexes before the percepts go in. Then:
   the clock starts, as FiftyOne keeps media on disk), generating the percepts included;
 - queries, interleaved (the same random arguments to both, one after the other), each as a
   count and as the first 50 materialised newest first: label, text word, one hour, 3D box,
-  sphere, region + one day, the 50 nearest; `ratio` is FiftyOne's p50 / ours (> 1: we are
-  faster); `n` compares what the two found;
+  sphere, region + one day, the 50 nearest. FiftyOne's label is classification.label; ours
+  is asked twice: `label` (`labelled=`, any annotator's) and `label_field` (a predicate on
+  the classification's class_name, with the field index `pmem index add` makes). `ratio` is
+  FiftyOne's p50 / ours (> 1: we are faster); `same_n` compares what the two found;
 - footprint: data and index bytes per percept in each database (FiftyOne's media files apart);
 - COCO export of the oldest --export percepts, each in a fresh process: time, peak memory.
 FiftyOne runs in its own Python (bench/fiftyone_side.py, talked to by JSON lines), which
@@ -142,6 +144,8 @@ class Ours:
     @staticmethod
     def filter(kind: str, args: dict) -> dict:
         if kind == "label":
+            return {"labelled": [args["label"]]}
+        if kind == "label_field":
             return {"where": [f"classification:{LABEL_FIELD}={args['label']}"]}
         if kind == "text":
             return {"text": args["word"]}

@@ -83,6 +83,15 @@ def test_a_phrase_must_appear_in_a_row(engine, store, kitchen):
 # --- filters, sorting, pages ----------------------------------------------------------------
 
 
+def test_a_label_is_found_exactly_whatever_its_case_and_separators(engine, store):
+    labelled = {d["_id"] for d in stored(store, **{"search.labels": "pringles"})}
+    assert labelled and len(labelled) < 500
+    for asked in ("Pringles", "PRINGLES", ["pringles", "no such label"]):
+        assert {h.id for h in every_page(engine, labelled=asked, limit=500)} == labelled
+    assert not engine.clusters(labelled="pringle").items  # a label, not a word of one
+    assert engine.clusters(labelled="pringles", limit=0, count=True).total == len(labelled)
+
+
 def test_field_predicates_hold_on_one_annotation(engine, store):
     hits = every_page(engine, where=["classification:class_name=cup",
                                      "classification:confidence>0.8"], limit=7)
@@ -357,6 +366,7 @@ PATHS = [
     ("clusters", {"text": "Prinles"}),
     ("clusters", {"text": '"tomato ketchup"', "sort": "oldest", "count": True}),
     ("clusters", {"region": "table", "count": True}),
+    ("clusters", {"labelled": ["ketchup", "cereal"], "count": True}),
     ("clusters", {"robot": "pr2", "sort": "oldest"}),
     ("clusters", {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00", "count": True}),
     ("clusters", {"at": "2024-03-05T06:00"}),
@@ -462,6 +472,7 @@ def test_the_count_alone_reads_no_page(store, kitchen):
     {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00"},
     {"region": "table", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
     {"object": "000000000000000000000000"},
+    {"labelled": "Pringles"},
     {},
 ])
 def test_a_count_an_index_decides_is_read_from_its_keys(store, kitchen, query):

@@ -18,7 +18,7 @@ from collections import defaultdict
 
 from bson import ObjectId
 
-from percept_memory.memory.search_keys import AXES
+from percept_memory.memory.search_keys import AXES, normal_label
 
 from .model import ClusterFilter, ClusterQuery
 from .ops import QueryError
@@ -31,8 +31,9 @@ PLACE = Coordinates.scalars(*(f"search.{axis}" for axis in AXES))  # the cells' 
 def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
                    expansions: Expansions | None = None) -> dict:
     clauses: list[dict] = []
+    labels = sorted({normal_label(label) for label in f.labelled})
     for values, field in ((f.region, "search.region"), (f.robot, "search.robot"),
-                          (f.object, "object_id")):
+                          (f.object, "object_id"), (labels, "search.labels")):
         if values:
             clauses.append({field: {"$in": list(values)}})
     if window := time_window(f.after, f.before, f.at):

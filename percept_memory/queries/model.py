@@ -328,6 +328,9 @@ class ClusterFilter(Strict):
         default=None, description='words and "quoted phrases"; misspellings are tolerated')
     region: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="region names (any of them)")
+    labelled: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
+        default=[], description="labels any annotation gave (any of them), exactly, case and "
+                                "word separators aside: cereal, SiggBottle = sigg bottle")
     robot: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="robot names (any of them)")
     object: Annotated[list[Id], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(

@@ -23,6 +23,7 @@ at the end.
 
 Usage: python bench/vs_fiftyone.py [--count 100000] [--reps 50] [--export 10000]
        [--fiftyone-python PATH]   (default: this Python; e.g. a venv with fiftyone==1.22.1)
+       [--gridfs-threshold BYTES] (ours: binaries larger go to GridFS, out of the clusters)
 """
 
 from __future__ import annotations
@@ -116,8 +117,9 @@ def scene(p: dict) -> Scene:
 
 
 class Ours:
-    def __init__(self, uri: str):
-        self.store = MemoryStore.open(Settings(mongodb_uri=uri, db="pmem_vs_fo"))
+    def __init__(self, uri: str, gridfs_threshold: int):
+        self.store = MemoryStore.open(Settings(mongodb_uri=uri, db="pmem_vs_fo",
+                                               gridfs_threshold=gridfs_threshold))
         self.store.add_field_index(LABEL_FIELD)
         self.engine = QueryEngine(self.store)
 
@@ -272,15 +274,19 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=50)
     parser.add_argument("--export", type=int, default=10_000)
     parser.add_argument("--fiftyone-python", default=sys.executable)
+    parser.add_argument("--gridfs-threshold", type=int, default=Settings().gridfs_threshold,
+                        help="ours: binaries above this many bytes go to GridFS, out of the "
+                             "cluster documents (1024: every crop)")
     args = parser.parse_args()
     skipped = fiftyone_missing(args.fiftyone_python)
     if skipped:
         print(skipped, file=sys.stderr)
     result: dict = {"benchmark": "vs_fiftyone", "percepts": args.count, "reps": args.reps,
+                    "gridfs_threshold": args.gridfs_threshold,
                     "load_before": os.getloadavg(), "fiftyone": skipped or "measured"}
     with ExitStack() as stack:
         root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="pmem_vs_fo_")))
-        ours = Ours(stack.enter_context(our_mongod(root)))
+        ours = Ours(stack.enter_context(our_mongod(root)), args.gridfs_threshold)
         stack.callback(ours.store.close)
         sides: dict = {"ours": ours}
         if not skipped:

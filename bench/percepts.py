@@ -67,7 +67,7 @@ def png(crop: np.ndarray) -> bytes:
 def query_args(rng: np.random.Generator, count: int) -> dict[str, dict]:
     """Random arguments for each query of the set, as plain data (both sides read them)."""
     end = START + count * STEP
-    t = int(rng.integers(START, end - HOUR))
+    t = int(rng.integers(START, max(START + 1, end - HOUR)))
     day = min(24 * HOUR, end - START)
     centre = [round(float(v), 4) for v in (*rng.uniform(2, SIDE - 2, 2), rng.uniform(0.5, 1.5))]
     half = 0.5

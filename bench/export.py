@@ -28,6 +28,7 @@ import bson
 from bson import ObjectId
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rss import reset_peak, rss_mb
 from scratch import print_json, scratch_store
 
 from percept_memory.demo import kitchen_week as kw
@@ -83,8 +84,8 @@ def measure(db: str, fmt: str, size: int) -> dict:
     """One export in this process: its throughput and peak memory."""
     settings = Settings(db=db)
     with MemoryStore.open(settings) as store:
-        baseline = _rss_mb("VmRSS")
-        _reset_peak()
+        baseline = rss_mb("VmRSS")
+        reset_peak()
         start = time.perf_counter()
         export = Export(store, ExportQuery(format=fmt, limit=size,
                                            **({"images": "crops"} if fmt == "coco" else {})))
@@ -93,26 +94,13 @@ def measure(db: str, fmt: str, size: int) -> dict:
             size_bytes += len(chunk)
             chunks += 1
         seconds = time.perf_counter() - start
-    peak = _rss_mb("VmHWM")
+    peak = rss_mb("VmHWM")
     return {"format": fmt, "clusters": export.summary.exported,
             "skipped": sum(export.summary.skipped.values()), "seconds": round(seconds, 1),
             "clusters_per_s": round(export.summary.exported / seconds),
             "zip_mb": round(size_bytes / 2**20, 1), "chunks": chunks,
             "baseline_rss_mb": round(baseline), "peak_rss_mb": round(peak),
             "growth_mb": round(peak - baseline)}
-
-
-def _rss_mb(field: str) -> float:
-    """Resident memory now (VmRSS) or at its peak since the last reset (VmHWM), in MB."""
-    with open("/proc/self/status") as status:
-        line = next(line for line in status if line.startswith(field + ":"))
-    return int(line.split()[1]) / 1024
-
-
-def _reset_peak() -> None:
-    """Start the peak (VmHWM) afresh, so it is the export's own (Linux 4.0+: clear_refs 5)."""
-    with open("/proc/self/clear_refs", "w") as refs:
-        refs.write("5")
 
 
 def main() -> None:

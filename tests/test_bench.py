@@ -34,6 +34,9 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
     ("enrichment.py", ["--slots", "8", "--jobs-per-slot", "3", "--scenes", "20", "--days", "1",
                        "--hashes", "10000"], {"lookups_per_s", "ingest", "kitchen_week_cache"}),
     ("curation.py", ["--days", "1", "--repeat", "2"], {"keyboard", "review_page", "rejection"}),
+    # FiftyOne is not installed here: its side is skipped, ours still measured
+    ("vs_fiftyone.py", ["--count", "300", "--reps", "1", "--export", "50"],
+     {"ingest", "queries", "footprint", "export_coco", "fiftyone"}),
     ("webui.py", ["--repeat", "2", "--map-days", "1", "--search-clusters", "3000",
                   "--playback-scenes", "3000", "--annotator-clusters", "3000",
                   "--facet-scenes", "3000"],

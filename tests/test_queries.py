@@ -20,6 +20,7 @@ from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import Cluster, Location, Logo, Scene, Text
+from percept_memory.queries.compile import cluster_filter
 from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
 from percept_memory.queries.model import ClusterQuery, annotation_field
 from percept_memory.queries.ops import QueryError
@@ -80,6 +81,15 @@ def test_a_phrase_must_appear_in_a_row(engine, store, kitchen):
 
 
 # --- filters, sorting, pages ----------------------------------------------------------------
+
+
+def test_a_label_is_found_exactly_whatever_its_case_and_separators(engine, store):
+    labelled = {d["_id"] for d in stored(store, **{"search.labels": "pringles"})}
+    assert labelled and len(labelled) < 500
+    for asked in ("Pringles", "PRINGLES", ["pringles", "no such label"]):
+        assert {h.id for h in every_page(engine, labelled=asked, limit=500)} == labelled
+    assert not engine.clusters(labelled="pringle").items  # a label, not a word of one
+    assert engine.clusters(labelled="pringles", limit=0, count=True).total == len(labelled)
 
 
 def test_field_predicates_hold_on_one_annotation(engine, store):
@@ -356,6 +366,7 @@ PATHS = [
     ("clusters", {"text": "Prinles"}),
     ("clusters", {"text": '"tomato ketchup"', "sort": "oldest", "count": True}),
     ("clusters", {"region": "table", "count": True}),
+    ("clusters", {"labelled": ["ketchup", "cereal"], "count": True}),
     ("clusters", {"robot": "pr2", "sort": "oldest"}),
     ("clusters", {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00", "count": True}),
     ("clusters", {"at": "2024-03-05T06:00"}),
@@ -458,3 +469,22 @@ def test_the_count_alone_reads_no_page(store, kitchen):
     assert [plan["op"] for plan in plans] == ["Count"]
     with pytest.raises(ValueError, match="limit=0 asks for no page"):
         ClusterQuery(region=["table"], limit=0)
+
+
+@pytest.mark.parametrize("query", [
+    {"region": "table"},
+    {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00"},
+    {"region": "table", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
+    {"object": "000000000000000000000000"},
+    {"labelled": "Pringles"},
+    {},
+])
+def test_a_count_an_index_decides_is_read_from_its_keys(store, kitchen, query):
+    """COUNT_SCAN: no document read, no aggregation; a count of everything counts the _id
+    index's keys, not the collection's metadata (wrong after an unclean shutdown)."""
+    plans: list = []
+    total = QueryEngine(store, explain=plans).clusters(**query, limit=0, count=True).total
+    assert total == store.clusters.count_documents(
+        cluster_filter(ClusterQuery(**query, limit=0, count=True)))
+    (plan,) = plans
+    assert plan["stages"] == ["COUNT", "COUNT_SCAN"], plan

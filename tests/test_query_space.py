@@ -105,3 +105,22 @@ def test_the_nearest_are_ranked_from_the_index_alone(space, store):
     assert len(hits) == 5 and ranking and reading["op"] == "Find"
     for plan in ranking:
         assert plan["indexes"] == ["cells_newest_xyz"] and "FETCH" not in plan["stages"], plan
+
+
+def test_a_box_is_counted_from_the_index_alone(space, store):
+    """The exact test is on the coordinates the cells' index holds: a box's count reads no
+    document (a sphere's reads those inside its bounding box, for the distance)."""
+    engine, by_id = space
+    low, high = (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)
+    for volume, inside in (
+            ({"box": Box(low=low, high=high)},
+             lambda p: all(a <= v <= b for a, v, b in zip(low, p, high, strict=True))),
+            ({"sphere": Sphere(center=(0, 0, 0), radius=1.0)},
+             lambda p: squared_distance_py((0, 0, 0), p) <= 1.0)):
+        plans: list = []
+        total = QueryEngine(store, explain=plans).clusters(**volume, limit=0, count=True).total
+        assert total == sum(map(inside, by_id.values())) > 0
+        (plan,) = plans
+        assert plan["indexes"] == ["cells_newest_xyz"], plan
+        if "box" in volume:
+            assert "FETCH" not in plan["stages"], plan

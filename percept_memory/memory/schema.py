@@ -64,6 +64,8 @@ INDEXES: dict[str, list[IndexModel]] = {
         _newest("search.region", name="region_newest"),
         _newest("search.robot", name="robot_newest"),
         _newest("search.terms", name="terms_newest"),
+        # a label exactly (any annotator's): counted from the index's keys alone (COUNT_SCAN)
+        _newest("search.labels", name="labels_newest"),
         # with the coordinates: the k nearest are ranked from the index alone (queries/space.py)
         _newest("search.cells", name="cells_newest_xyz",
                 then=("search.x", "search.y", "search.z")),

@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 
 from percept_memory.memory.schema import CLUSTERS
-from percept_memory.memory.search_keys import AXES, EVERYWHERE
+from percept_memory.memory.search_keys import EVERYWHERE
 
 from . import meaning
 from .compile import (
+    PLACE,
     cluster_filter,
     conjunction,
     encode_cursor,
@@ -24,7 +25,6 @@ from .text import MEANING, TextQuery, expand, score_expression
 RANK_WINDOW = 300  # relevance ranks the most recent this many text matches
 HIT_FIELDS = {"scene_id": 1, "object_id": 1, **{f"search.{key}": 1 for key in (
     "time", "robot", "region", "position", "labels", "text", "types")}}
-COORDINATES = [f"$search.{axis}" for axis in AXES]  # scalars the cells' index holds
 
 
 def compiled(f: ClusterFilter) -> Plan[tuple[dict, dict | None]]:
@@ -79,7 +79,8 @@ def nearest(match: dict, point, k: int) -> Plan[list[ClusterHit]]:
     for keys, covered in shells(point):
         ranked = yield Aggregate(CLUSTERS, [
             {"$match": conjunction([match, {"search.cells": {"$in": keys}}])},
-            {"$project": {"time": "$search.time", "d2": squared_distance(point, COORDINATES)}},
+            {"$project": {"time": "$search.time",
+                          "d2": squared_distance(point, PLACE.expressions)}},
             {"$sort": {"d2": 1, "time": -1, "_id": -1}},
             {"$limit": k},
         ])

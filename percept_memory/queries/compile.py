@@ -18,19 +18,22 @@ from collections import defaultdict
 
 from bson import ObjectId
 
+from percept_memory.memory.search_keys import AXES, normal_label
+
 from .model import ClusterFilter, ClusterQuery
 from .ops import QueryError
-from .space import cells_of_volume, inside
+from .space import Coordinates, cells_of_volume, inside
 from .text import Expansions, TextQuery, all_terms, phrase_pattern
 
-POSITION = "search.position"
+PLACE = Coordinates.scalars(*(f"search.{axis}" for axis in AXES))  # the cells' index holds them
 
 
 def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
                    expansions: Expansions | None = None) -> dict:
     clauses: list[dict] = []
+    labels = sorted({normal_label(label) for label in f.labelled})
     for values, field in ((f.region, "search.region"), (f.robot, "search.robot"),
-                          (f.object, "object_id")):
+                          (f.object, "object_id"), (labels, "search.labels")):
         if values:
             clauses.append({field: {"$in": list(values)}})
     if window := time_window(f.after, f.before, f.at):
@@ -38,7 +41,7 @@ def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
     for volume in (f.box, f.sphere):
         if volume is not None:
             clauses += [{"search.cells": {"$in": cells_of_volume(volume)}},
-                        inside(volume, POSITION)]
+                        inside(volume, PLACE)]
     if text is not None:
         clauses.append({"search.terms": {"$in": all_terms(expansions or {})}})
         for phrase in text.phrases:

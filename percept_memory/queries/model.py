@@ -331,6 +331,9 @@ class ClusterFilter(Strict):
         "juice, milk), ranked after exact words"))
     region: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="region names (any of them)")
+    labelled: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
+        default=[], description="labels any annotation gave (any of them), exactly, case and "
+                                "word separators aside: cereal, SiggBottle = sigg bottle")
     robot: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="robot names (any of them)")
     object: Annotated[list[Id], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(

@@ -24,10 +24,11 @@ from .model import About, AtTime, Between, History, Place
 from .ops import Aggregate, Find, Plan, QueryError
 from .results import Belief, Changes, Contents, Moved, ObjectAt, Sighting, Stay
 from .results import History as HistoryAnswer
-from .space import inside
+from .space import Coordinates, inside
 from .text import all_terms, expand, word_score
 
 NOW = 2**63 - 1
+EVENT_PLACE = Coordinates.array("position")
 STATE_OF = {"appear": "present", "stay": "present", "move": "present", "newview": "present",
             "hidden": "hidden", "disappear": "disappeared"}
 STATE_ORDER = {"present": 0, "hidden": 1, "disappeared": 2}
@@ -211,7 +212,7 @@ def _at(place: Place) -> dict:
     if place.region is not None:
         return {"region": place.region}
     if place.box or place.sphere:
-        return inside(place.box or place.sphere, "position")
+        return inside(place.box or place.sphere, EVENT_PLACE)
     return {}
 
 

@@ -9,6 +9,8 @@ what-is-at a volume and changes in a volume mean exactly what a cluster search m
 from __future__ import annotations
 
 import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 from percept_memory.memory.search_keys import (
     CELL_SIZES,
@@ -43,18 +45,34 @@ def corners(volume: Box | Sphere) -> tuple[tuple, tuple]:
             tuple(min(v + m, FLOAT_MAX) for v, m in zip(c, margin, strict=True)))
 
 
-def inside_box(box: Box, position: str) -> dict:
-    """The exact test, corners included, on a position field [x, y, z]."""
-    return {f"{position}.{axis}": {"$gte": box.low[axis], "$lte": box.high[axis]}
-            for axis in range(3)}
+@dataclass(frozen=True)
+class Coordinates:
+    """Where documents keep a position: the paths of x, y and z that a filter compares, and
+    the expressions of them that $expr computes with."""
+
+    paths: tuple[str, str, str]
+    expressions: tuple
+
+    @classmethod
+    def array(cls, position: str) -> Coordinates:
+        """A position field [x, y, z] (events)."""
+        return cls(tuple(f"{position}.{axis}" for axis in range(3)),
+                   tuple({"$arrayElemAt": [f"${position}", axis]} for axis in range(3)))
+
+    @classmethod
+    def scalars(cls, *paths: str) -> Coordinates:
+        """x, y and z in fields of their own (clusters: the cells' index holds them, so a
+        filter on them is decided in the index, without reading a document)."""
+        return cls(paths, tuple(f"${path}" for path in paths))
 
 
-def elements(position: str) -> list[dict]:
-    """The coordinates of a position field [x, y, z], as expressions."""
-    return [{"$arrayElemAt": [f"${position}", axis]} for axis in range(3)]
+def inside_box(box: Box, at: Coordinates) -> dict:
+    """The exact test, corners included."""
+    return {path: {"$gte": box.low[axis], "$lte": box.high[axis]}
+            for axis, path in enumerate(at.paths)}
 
 
-def squared_distance(point, coordinates: list) -> dict:
+def squared_distance(point, coordinates: Sequence) -> dict:
     """((dx*dx + dy*dy) + dz*dz) from coordinates (expressions of x, y, z) to a point: the
     same arithmetic, in the same order, as `squared_distance_py`."""
     deltas = [{"$subtract": [coordinates[axis], float(point[axis])]} for axis in range(3)]
@@ -73,18 +91,17 @@ def squared_distance_py(point, position) -> float:
     return (dx * dx + dy * dy) + dz * dz
 
 
-def inside_sphere(sphere: Sphere, position: str) -> dict:
+def inside_sphere(sphere: Sphere, at: Coordinates) -> dict:
     """The exact test: squared distance to the centre at most the squared radius, within the
     sphere's bounding box (which lets plain range conditions narrow the candidates first)."""
     low, high = corners(sphere)
-    return {**inside_box(Box(low=low, high=high), position),
-            "$expr": {"$lte": [squared_distance(sphere.center, elements(position)),
+    return {**inside_box(Box(low=low, high=high), at),
+            "$expr": {"$lte": [squared_distance(sphere.center, at.expressions),
                                sphere.radius * sphere.radius]}}
 
 
-def inside(volume: Box | Sphere, position: str) -> dict:
-    return inside_box(volume, position) if isinstance(volume, Box) else inside_sphere(
-        volume, position)
+def inside(volume: Box | Sphere, at: Coordinates) -> dict:
+    return inside_box(volume, at) if isinstance(volume, Box) else inside_sphere(volume, at)
 
 
 def shells(point) -> list[tuple[list[str], float]]:

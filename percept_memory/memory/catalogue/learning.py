@@ -274,8 +274,6 @@ class Learner:
         while len(self.singletons) > self.params.max_singletons:
             shortest = min(self.singletons, key=lambda s: (self.models[s].length, s))
             self._remove(shortest)
-            self._dissolved.discard(shortest)
-            self._drop_cluster(shortest)
 
     # --- bookkeeping ------------------------------------------------------------------------
 
@@ -285,13 +283,20 @@ class Learner:
         self.changed.add(m)
 
     def _remove(self, m: Hashable) -> set:
+        """Take a model out of the graph and out of its cluster (whose union loses its
+        elements now, while they are known: the cluster left is reshaped, not rebuilt)."""
         neighbours = set(self.edges[m])
         for other in neighbours:
             self._unlink(m, other)
-        del self.models[m], self.edges[m]
         cluster = self.cluster_of.pop(m, None)
         if cluster is not None:
-            self._dissolved.add(cluster)
+            self._reshape_cluster(cluster, self.members[cluster] - {m})
+            if self.members[cluster]:
+                self._dissolved.add(cluster)
+            else:
+                self._dissolved.discard(cluster)
+                self._drop_cluster(cluster)
+        del self.models[m], self.edges[m]
         self.changed.add(m)
         return neighbours
 
@@ -324,6 +329,10 @@ class Learner:
         old = self.members[name]
         if old == members:
             return
+        self.members[name] = frozenset(members)
+        self.singletons.discard(name)
+        if len(members) == 1:
+            self.singletons.add(name)
         union = self._union[name]
         for m in old - members:
             for element in self.models[m].graph.elements:
@@ -338,11 +347,6 @@ class Learner:
                 union[element] += 1
             self.cluster_of[m] = name
             self.changed.add(m)
-        self.members[name] = frozenset(members)
-        if len(members) == 1:
-            self.singletons.add(name)
-        else:
-            self.singletons.discard(name)
 
     def _drop_cluster(self, name: Hashable) -> None:
         for element in self._union.pop(name):

@@ -10,7 +10,7 @@ ours are the options below):
   sequence (uniform from --min-share), with 5 % of its views replaced by random views (noise);
 - each partial model's graph of views (nodes: the views; edges: consecutive views) is learnt
   by the catalogue's learner (memory/catalogue/learning.py, the thesis' real-data settings but
-  two, tuned on seeds 100-119 (the thesis gives none for its simulation): --high-inclusion
+  two, tuned on seeds 100-160 (the thesis gives none for its simulation): --high-inclusion
   0.75 (with 5 % noise hardly any model is 95 % included in another, so few are discarded and
   some 240 duplicates pile up) and --low-similarity 0.3 (at 0.01 a model whose own object's
   cluster is full keeps a weak link to another object's cluster that is not: 1-4 corrupted

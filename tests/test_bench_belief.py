@@ -11,6 +11,21 @@ import pytest
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def bench_types_forgotten():
+    """bench/identity.py registers a bench-only annotation type (bench.annotation.Colour):
+    forgotten after this module, so the rest of the suite sees the program's types alone (the
+    published interchange schema lists every registered annotation type)."""
+    from percept_memory.converters import registry
+
+    by_name, by_class = dict(registry._class_by_name), dict(registry._name_by_class)
+    yield
+    registry._class_by_name.clear()
+    registry._class_by_name.update(by_name)
+    registry._name_by_class.clear()
+    registry._name_by_class.update(by_class)
+
+
 @pytest.fixture
 def run(monkeypatch):
     """A long run's bookkeeping after real object 0 was seen showing side 0 as id "J", then

@@ -234,8 +234,9 @@ def memory_pipeline(store: MemoryStore, settings: Settings | None = None) -> Pip
     """The memory pipeline with its stages: identity consolidation, the long-term catalogue
     (which needs the objects identity linked), then lookup jobs."""
     lease_s = (settings or Settings()).map_lease_s
-    return Pipeline(store, [Consolidation(store), CatalogueStage(store), LookupEnqueuer(store)],
-                    lease_s=lease_s)
+    identity = Consolidation(store)
+    return Pipeline(store, [identity, CatalogueStage(store, identity=identity),
+                            LookupEnqueuer(store)], lease_s=lease_s)
 
 
 def in_map(scenes: Iterable[Scene], name: str) -> Iterator[Scene]:

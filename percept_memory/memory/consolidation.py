@@ -129,7 +129,7 @@ class Consolidation:
         scene's candidates), its events and cluster links `later`. `arrived`: cluster id ->
         how many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, places, session)
-        seen_as = self._observations([c for o, _ in believed for c in _views(o)], session)
+        seen_as = self.observations([c for o, _ in believed for c in _views(o)], session)
         known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
                        [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as],
                        o["last_seen"])
@@ -241,9 +241,10 @@ class Consolidation:
             if scene_id in scene_docs:  # (a scene deleted by hand has nothing to consolidate)
                 yield docs.decode_scene(scene_docs[scene_id], cluster_docs, blobs), arrived
 
-    def _observations(self, cluster_ids: list, session) -> dict:
-        """The evidence of stored clusters, decoded once: what a cluster arrived with never
-        changes under its id."""
+    def observations(self, cluster_ids: list, session=None) -> dict:
+        """The evidence of stored clusters (as Observations, by id), decoded once: what a
+        cluster arrived with never changes under its id. The catalogue stage learns from the
+        same, decoded by the time it runs."""
         missing = [c for c in cluster_ids if c not in self._decoded]
         if missing:
             found = list(self.store.clusters.find({"_id": {"$in": missing}}, CLUSTER_EVIDENCE,

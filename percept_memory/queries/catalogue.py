@@ -13,9 +13,8 @@ from collections import Counter
 
 from bson import ObjectId
 
-from percept_memory.memory import documents as docs
 from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, modalities_consensus
-from percept_memory.memory.catalogue.stage import NO_PIXELS, CatalogueStage
+from percept_memory.memory.catalogue.stage import CatalogueStage
 from percept_memory.memory.catalogue.views import observation_views
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, OBJECTS
@@ -70,13 +69,14 @@ def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,
     """The entries an observation may be, best first: `inclusion`, how much of its views the
     entry holds (Duceux eq. 6.2), and `consensus`, how far its modalities agree that the entry
     is the best match (eq. 5.12)."""
-    doc = store.clusters.find_one({"_id": cluster_id}, NO_PIXELS)
-    if doc is None:
+    stage = stage or CatalogueStage(store)
+    observation = stage.identity.observations([cluster_id]).get(cluster_id)
+    if observation is None:
         raise NotFound("cluster", str(cluster_id))
+    doc = store.clusters.find_one({"_id": cluster_id}, {"scene_id": 1})
     scene = store.scenes.find_one({"_id": doc["scene_id"]}, {"map": 1}) or {}
-    views = observation_views(docs.decode_cluster(doc, store._blobs([doc])), docs.arrived(doc))
-    graph = GraphOfViews.of_sequence([views])
-    learner = (stage or CatalogueStage(store)).learner(scene.get("map", ""))
+    graph = GraphOfViews.of_sequence([observation_views(observation.evidence)])
+    learner = stage.learner(scene.get("map", ""))
     ranked = learner.classify(graph)[:limit]
     unions = [learner.union(entry) for entry, _ in ranked]
     found = {e["entry"]: e for e in entries(store, only=[ObjectId(e) for e, _ in ranked],

@@ -28,7 +28,7 @@ from pymongo import DeleteOne, ReplaceOne
 
 from percept_memory.converters import registered_types
 
-from .. import documents as docs
+from ..consolidation import Consolidation
 from ..schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, MAPS
 from ..store import MemoryStore
 from ..types import Annotation, Hypothesis
@@ -48,8 +48,6 @@ LOW_SIMILARITY = 0.03
 # week of seed 1 had 37 entries for 20 objects at 0.95, 22 at 0.75, none mixing two kinds.
 HIGH_INCLUSION = 0.75
 VERSION = "catalogue_version"
-EVIDENCE = {"object_id": 1, "hypotheses": 1, "annotations": 1, docs.ARRIVED_KEY: 1}
-NO_PIXELS = {"hypotheses.crop": 0, "hypotheses.mask": 0, "hypotheses.cloud": 0}
 
 
 def declared_modalities() -> int:
@@ -71,9 +69,12 @@ class CatalogueStage:
     name = "catalogue"
     belief = True
 
-    def __init__(self, store: MemoryStore, params: Parameters | None = None):
+    def __init__(self, store: MemoryStore, params: Parameters | None = None,
+                 identity: Consolidation | None = None):
         self.store = store
         self.params = params or home_parameters()
+        # the observations' evidence: identity's, which has decoded this batch's already
+        self.identity = identity or Consolidation(store)
         self.models = store.db[CATALOGUE]
         self.tracks = store.db[CATALOGUE_TRACKS]
         self.history = store.db[CATALOGUE_HISTORY]
@@ -86,7 +87,7 @@ class CatalogueStage:
         version = stored.get(VERSION)
         kept = self._learners.get(map_name)
         if kept is None or version is None or kept[0] != version:
-            rows = ((doc["_id"].binary, GraphOfViews(frozenset(doc["elements"])),
+            rows = ((doc["_id"].binary, GraphOfViews.of(doc["elements"]),
                      doc["length"], {other.binary: w for other, w in doc["edges"]})
                     for doc in self.models.find({"map": map_name}, session=session))
             self._learners[map_name] = (version, Learner.restored(self.params, rows))
@@ -99,22 +100,21 @@ class CatalogueStage:
             {"_id": {"$in": list(scene_ids)}}, {"clusters": 1, "timestamp": 1},
             session=session)}
         wanted = [c for doc in scenes.values() for c in doc["clusters"]]
-        found = list(self.store.clusters.find(
-            {"_id": {"$in": wanted}, "object_id": {"$ne": None}}, NO_PIXELS, session=session))
-        blobs = self.store._blobs(found, session)
-        clusters = {doc["_id"]: doc for doc in found}
+        objects = {doc["_id"]: doc["object_id"] for doc in self.store.clusters.find(
+            {"_id": {"$in": wanted}, "object_id": {"$ne": None}}, {"object_id": 1},
+            session=session)}
+        evidence = self.identity.observations(list(objects), session)
         tracks = {doc["_id"]: doc for doc in self.tracks.find(
-            {"_id": {"$in": list({doc["object_id"] for doc in found})}}, session=session)}
+            {"_id": {"$in": list(set(objects.values()))}}, session=session)}
         touched, changes = set(), []
         for scene_id in scene_ids:
             scene = scenes.get(scene_id)
             for cluster_id in scene["clusters"] if scene else ():
-                doc = clusters.get(cluster_id)
-                views = doc and observation_views(docs.decode_cluster(doc, blobs),
-                                                  docs.arrived(doc))
+                views = (cluster_id in objects and cluster_id in evidence
+                         and observation_views(evidence[cluster_id].evidence))
                 if views:
-                    track = tracks.setdefault(doc["object_id"], {
-                        "_id": doc["object_id"], "map": map_name, "seen": 0})
+                    track = tracks.setdefault(objects[cluster_id], {
+                        "_id": objects[cluster_id], "map": map_name, "seen": 0})
                     self._observe(learner, track, cluster_id, views, scene["timestamp"])
                     touched.add(track["_id"])
                     changes += [{"map": map_name, "time": scene["timestamp"],
@@ -142,7 +142,7 @@ class CatalogueStage:
                      seen=track["seen"] + 1, last_seen=time)
         if not grown.elements <= before:
             track["elements"] = sorted(before | grown.elements)
-            learner.learn(track["model"].binary, GraphOfViews(frozenset(track["elements"])),
+            learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
                           track["observations"])
 
     def _write(self, learner: Learner, map_name: str, objects: dict, session) -> None:

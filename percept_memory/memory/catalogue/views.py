@@ -4,13 +4,14 @@ is the type (Duceux 5.3.2: one dictionary per descriptor type)."""
 
 from __future__ import annotations
 
-from ..types import Cluster
+from collections.abc import Iterable
+
 from .graph_of_views import node
 
 
-def observation_views(cluster: Cluster, arrived: int) -> list[str]:
-    """The nodes of a cluster's evidence as it arrived (`arrived` annotations: what enrichment
-    appended later never changes the catalogue, so a rebuild learns what the live path did)."""
-    evidence = [*cluster.hypotheses, *cluster.annotations[:arrived]]
+def observation_views(evidence: Iterable) -> list[str]:
+    """The nodes of an observation's evidence: identity's (consolidation.py), the evidence
+    a cluster arrived with, so what enrichment appended later never changes the catalogue and
+    a rebuild learns what the live path did."""
     return sorted({node(type(item).__name__.lower(), word) for item in evidence
                    for word in getattr(item, "views", list)()})

@@ -28,10 +28,10 @@ class FailingOnce(Failing):
 def test_aborted_batches_leave_no_trace_in_the_catalogue(store):
     scenes = kitchen_week.generate(days=2).scenes
     ids = IngestService(store).ingest_batch(scenes)
-    catalogue = CatalogueStage(store)
+    identity = Consolidation(store)
     failing = FailingOnce({i.scene_id for i in ids[5::4]})
-    pipeline = Pipeline(store, [Consolidation(store), catalogue, failing], backoff_s=0.01,
-                        batch=4)
+    pipeline = Pipeline(store, [identity, CatalogueStage(store, identity=identity), failing],
+                        backoff_s=0.01, batch=4)
     pipeline.drain(timeout=120)
     assert not pipeline.pending()
     live = stored_catalogue(store)

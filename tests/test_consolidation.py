@@ -8,7 +8,7 @@ import pytest
 from pymongo import MongoClient
 
 from percept_memory.demo import kitchen_week
-from percept_memory.ingest.service import IngestService
+from percept_memory.ingest.service import IngestService, memory_pipeline
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.identity import Calibration
 from percept_memory.memory.pipeline import request_rebuild
@@ -23,6 +23,7 @@ from percept_memory.memory.types import (
 )
 
 from .conftest import ingest_consolidated
+from .test_catalogue_store import stored_catalogue
 
 
 @pytest.fixture(scope="module")
@@ -231,6 +232,25 @@ def test_one_object_remembered_twice_is_merged_when_its_sides_meet(empty_store):
     history = [e["explanation"] for e in empty_store.db.events.find(
         {"object_id": objects[0]["_id"]}).sort("time")]
     assert history == ["appear", "disappear", "appear", "newview"]
+
+
+def test_the_catalogue_learns_each_observation_as_the_object_it_was_by_then(empty_store):
+    """Identity merges an object remembered twice in a later scene; whether the consolidator
+    took the scenes one at a time (a busy server) or all in one batch (a rebuild), the
+    catalogue learnt the earlier observations under the object they were then."""
+    red, blue, again, turned = (_box("red", 0.5), _box("blue", 3.5), _box("blue", 3.5),
+                                _box("red", 3.5))
+    IngestService(empty_store).ingest_batch([
+        _looks(0.5, red, t=0), _looks(0.5, t=1), _looks(3.5, blue, t=2), _looks(3.5, again, t=3),
+        _looks(3.5, turned, t=4)])
+    one_by_one = memory_pipeline(empty_store)
+    one_by_one.batch = 1
+    one_by_one.drain(timeout=60)
+    assert empty_store.db.objects.count_documents({"map": "sides"}) == 1  # merged
+    single = stored_catalogue(empty_store)
+    request_rebuild(empty_store)
+    memory_pipeline(empty_store).drain(timeout=60)
+    assert stored_catalogue(empty_store) == single
 
 
 def test_lookalikes_seen_side_by_side_are_never_merged(empty_store):

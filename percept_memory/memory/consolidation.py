@@ -79,6 +79,9 @@ class Consolidation:
         self.params = params or Parameters()
         self.max_unseen_candidates = max_unseen_candidates
         self._decoded: OrderedDict = OrderedDict()  # cluster id -> Observation
+        # cluster id -> its object by the end of its scene (a later scene of the batch may
+        # merge that object into another), for the stages after this one in the batch
+        self.decided: dict = {}
         self._places: dict[str, Places] = {}  # map -> where its objects are believed
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
@@ -90,6 +93,7 @@ class Consolidation:
         places = self._places_of(map_name, stored and stored.get("version"), session)
         places.version = ObjectId()  # the version this transaction writes, if it commits
         later = Later(self.events, self.store.clusters, session)
+        self.decided = {}
         for scene, arrived in self._scenes(scene_ids, session):
             self.consolidate(scene, arrived, calibration, places, later, session)
         later.write()
@@ -174,6 +178,7 @@ class Consolidation:
             if keep != twin:
                 self._merge(keep, twin, scene, places, session)
                 merged[twin] = keep
+        self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
 
     def _asked_to_merge(self, asked: dict, seen_as: dict, session) -> list:

@@ -100,9 +100,7 @@ class CatalogueStage:
             {"_id": {"$in": list(scene_ids)}}, {"clusters": 1, "timestamp": 1},
             session=session)}
         wanted = [c for doc in scenes.values() for c in doc["clusters"]]
-        objects = {doc["_id"]: doc["object_id"] for doc in self.store.clusters.find(
-            {"_id": {"$in": wanted}, "object_id": {"$ne": None}}, {"object_id": 1},
-            session=session)}
+        objects = self._objects(wanted, session)
         evidence = self.identity.observations(list(objects), session)
         tracks = {doc["_id"]: doc for doc in self.tracks.find(
             {"_id": {"$in": list(set(objects.values()))}}, session=session)}
@@ -130,6 +128,19 @@ class CatalogueStage:
             self.history.insert_many(changes, session=session)
         self._write(learner, map_name, {t["model"].binary: t["_id"] for t in tracks.values()},
                     session)
+
+    def _objects(self, cluster_ids: list, session) -> dict:
+        """The object of each cluster as identity made it by the end of the cluster's scene,
+        so that the catalogue learns the same in any batching of the scenes; for clusters
+        identity did not decide in this batch (it ran elsewhere), the object they are now."""
+        decided = self.identity.decided
+        objects = {c: decided[c] for c in cluster_ids if c in decided}
+        rest = [c for c in cluster_ids if c not in decided]
+        if rest:
+            objects.update((doc["_id"], doc["object_id"]) for doc in self.store.clusters.find(
+                {"_id": {"$in": rest}, "object_id": {"$ne": None}}, {"object_id": 1},
+                session=session))
+        return objects
 
     def _observe(self, learner: Learner, track: dict, cluster_id: ObjectId, views: list[str],
                  time: int) -> None:

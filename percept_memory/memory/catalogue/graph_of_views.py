@@ -150,7 +150,7 @@ class Comparison:
         """modalities_match * |I n J| / (max_modalities * |I|), eq. 5.7."""
         if not self.size_i:
             return 0.0
-        matched = len({modality(e) for e in self.common})
+        matched = len(set(map(modality, self.common)))
         return matched * len(self.common) / (max_modalities * self.size_i)
 
 

@@ -18,6 +18,7 @@ from collections import Counter
 from collections.abc import Hashable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from itertools import chain
 
 from .graph_of_views import Comparison, GraphOfViews
 
@@ -85,22 +86,18 @@ class Learner:
         first (ties by cluster name). The candidates are the clusters sharing an element that
         few clusters hold (as a text retrieval engine skips stop words); only when there is
         none, those sharing common ones ("box", "red"). A candidate's score is exact."""
-        hits: Counter = Counter()
-        common = []
+        rare, common = [], []
         for element in graph.elements:
             clusters = self._index.get(element)
-            if clusters is None:
-                continue
-            if len(clusters) > self.params.common_element:
-                common.append(clusters)
-            else:
-                hits.update(clusters)
+            if clusters is not None:
+                (common if len(clusters) > self.params.common_element else rare).append(clusters)
+        # counted in one call each: a model shares hundreds of elements with the memory
+        hits = Counter(chain.from_iterable(rare))
         if hits:
-            for clusters in common:
-                hits.update(hits.keys() & clusters)
+            found = hits.keys()
+            hits.update(chain.from_iterable(found & clusters for clusters in common))
         else:
-            for clusters in common:
-                hits.update(clusters)
+            hits.update(chain.from_iterable(common))
         n = len(graph)
         return sorted(((c, k / n) for c, k in hits.items()), key=lambda x: (-x[1], x[0]))
 
@@ -318,8 +315,7 @@ class Learner:
                 self.changed.add(m)
             self.cluster_of[m] = name
         self._union[name] = union
-        for element in union:
-            self._index.setdefault(element, set()).add(name)
+        self._index_add(union, name)
         if len(members) == 1:
             self.singletons.add(name)
 
@@ -333,29 +329,47 @@ class Learner:
         self.singletons.discard(name)
         if len(members) == 1:
             self.singletons.add(name)
-        union = self._union[name]
+        union, gone, new = self._union[name], [], []
         for m in old - members:
             for element in self.models[m].graph.elements:
-                union[element] -= 1
-                if not union[element]:
+                left = union[element] - 1
+                if left:
+                    union[element] = left
+                else:
                     del union[element]
-                    self._discard_from_index(element, name)
+                    gone.append(element)
         for m in members - old:
             for element in self.models[m].graph.elements:
-                if not union[element]:
-                    self._index.setdefault(element, set()).add(name)
-                union[element] += 1
+                count = union.get(element, 0)
+                if not count:
+                    new.append(element)
+                union[element] = count + 1
             self.cluster_of[m] = name
             self.changed.add(m)
+        self._index_discard(gone, name)
+        self._index_add(new, name)
 
     def _drop_cluster(self, name: Hashable) -> None:
-        for element in self._union.pop(name):
-            self._discard_from_index(element, name)
+        self._index_discard(self._union.pop(name), name)
         del self.members[name]
         self.singletons.discard(name)
 
-    def _discard_from_index(self, element: str, name: Hashable) -> None:
-        clusters = self._index[element]
-        clusters.discard(name)
-        if not clusters:
-            del self._index[element]
+    def _index_add(self, elements: Iterable[str], name: Hashable) -> None:
+        """The cluster's union holds these elements now (one call per model, not per element:
+        a model has hundreds)."""
+        index = self._index
+        for element in elements:
+            holders = index.get(element)
+            if holders is None:
+                index[element] = {name}
+            else:
+                holders.add(name)
+
+    def _index_discard(self, elements: Iterable[str], name: Hashable) -> None:
+        """The cluster's union holds these elements no more."""
+        index = self._index
+        for element in elements:
+            holders = index[element]
+            holders.discard(name)
+            if not holders:
+                del index[element]

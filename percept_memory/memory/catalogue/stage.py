@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from bson import ObjectId
-from pymongo import DeleteOne, ReplaceOne
+from pymongo import DeleteOne, ReplaceOne, UpdateOne
 
 from percept_memory.converters import registered_types
 
@@ -104,7 +104,7 @@ class CatalogueStage:
         evidence = self.identity.observations(list(objects), session)
         tracks = {doc["_id"]: doc for doc in self.tracks.find(
             {"_id": {"$in": list(set(objects.values()))}}, session=session)}
-        touched, changes = set(), []
+        touched, learnt, changes = set(), {}, []  # learnt: model -> its object
         for scene_id in scene_ids:
             scene = scenes.get(scene_id)
             for cluster_id in scene["clusters"] if scene else ():
@@ -113,7 +113,8 @@ class CatalogueStage:
                 if views:
                     track = tracks.setdefault(objects[cluster_id], {
                         "_id": objects[cluster_id], "map": map_name, "seen": 0})
-                    self._observe(learner, track, cluster_id, views, scene["timestamp"])
+                    if self._observe(learner, track, cluster_id, views, scene["timestamp"]):
+                        learnt[track["model"].binary] = track["_id"]
                     touched.add(track["_id"])
                     changes += [{"map": map_name, "time": scene["timestamp"],
                                  "cluster_id": cluster_id, "kind": change.kind,
@@ -126,8 +127,7 @@ class CatalogueStage:
                                     for t in sorted(touched)], session=session)
         if changes:
             self.history.insert_many(changes, session=session)
-        self._write(learner, map_name, {t["model"].binary: t["_id"] for t in tracks.values()},
-                    session)
+        self._write(learner, map_name, learnt, session)
 
     def _objects(self, cluster_ids: list, session) -> dict:
         """The object of each cluster as identity made it by the end of the cluster's scene,
@@ -143,41 +143,43 @@ class CatalogueStage:
         return objects
 
     def _observe(self, learner: Learner, track: dict, cluster_id: ObjectId, views: list[str],
-                 time: int) -> None:
-        """Add an observation to the track's model; learn the model again if it grew."""
+                 time: int) -> bool:
+        """Add an observation to the track's model; learn the model again if it grew
+        (True)."""
         if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
             track.update(model=cluster_id, elements=[], last=[], observations=0)
         before = set(track["elements"])
         grown = GraphOfViews.of_sequence([track["last"], views] if track["last"] else [views])
         track.update(last=views, observations=track["observations"] + 1,
                      seen=track["seen"] + 1, last_seen=time)
-        if not grown.elements <= before:
-            track["elements"] = sorted(before | grown.elements)
-            learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
-                          track["observations"])
+        if grown.elements <= before:
+            return False
+        track["elements"] = sorted(before | grown.elements)
+        learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
+                      track["observations"])
+        return True
 
-    def _write(self, learner: Learner, map_name: str, objects: dict, session) -> None:
-        """The models that changed, and a new version of the map's catalogue. `objects`: the
-        object of each model of this batch's tracks (the others' are read)."""
+    def _write(self, learner: Learner, map_name: str, learnt: dict, session) -> None:
+        """The models that changed, and a new version of the map's catalogue. `learnt`: the
+        models learnt (again) in this batch, with their objects: written whole; the others
+        only changed their edges or entry (a model's elements never change under its id)."""
         writes = []
-        elsewhere = [ObjectId(k) for k in learner.changed if k in learner.models
-                     and k not in objects]
-        if elsewhere:
-            stored = self.models.find({"_id": {"$in": elsewhere}}, {"object_id": 1},
-                                      session=session)
-            objects = {**objects, **{doc["_id"].binary: doc["object_id"] for doc in stored}}
         for key in sorted(learner.changed):
             model_id = ObjectId(key)
             if key not in learner.models:
                 writes.append(DeleteOne({"_id": model_id}))
                 continue
-            model = learner.models[key]
-            object_id = objects.get(key)
-            writes.append(ReplaceOne({"_id": model_id}, {
-                "map": map_name, "object_id": object_id,
-                "elements": sorted(model.graph.elements), "length": model.length,
-                "edges": [[ObjectId(other), w] for other, w in sorted(learner.edges[key].items())],
-                "entry": ObjectId(learner.cluster_of[key])}, upsert=True))
+            links = {"edges": [[ObjectId(other), w] for other, w in
+                               sorted(learner.edges[key].items())],
+                     "entry": ObjectId(learner.cluster_of[key])}
+            if key in learnt:
+                model = learner.models[key]
+                writes.append(ReplaceOne({"_id": model_id}, {
+                    "map": map_name, "object_id": learnt[key],
+                    "elements": sorted(model.graph.elements), "length": model.length, **links},
+                    upsert=True))
+            else:
+                writes.append(UpdateOne({"_id": model_id}, {"$set": links}))
         learner.changed.clear()
         if writes:
             self.models.bulk_write(writes, session=session)

@@ -134,7 +134,7 @@ class Model(Typed):
                 kinds = sorted(name_of(t) for t in _registered_kinds(cls))
                 raise ValueError(f"_type {name!r} is not a kind of {cls.__name__}: one of {kinds}")
             if target is not cls:
-                return target.model_validate(data, context=info.context)
+                return target.__pydantic_validator__.validate_python(data, context=info.context)
         return handler(data)
 
     @classmethod

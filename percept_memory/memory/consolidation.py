@@ -185,6 +185,8 @@ class Consolidation:
         """(object, the object to merge into it): a cluster of this scene is, a person said,
         the same object as an earlier cluster (types/curation.py: SameObject), whose object
         identity has decided on by now. One kept apart from the other is merged into it."""
+        if not asked:
+            return []  # (no round trip: people ask for few scenes)
         earlier = {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
             {"_id": {"$in": [c for others in asked.values() for c in others]}},
             {"object_id": 1}, session=session)}

@@ -127,6 +127,22 @@ def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query
     assert f'table ({facets.shown(table)})</option>' in text or table == 0
 
 
+@pytest.mark.parametrize("grouped", [1, 60, 5000])
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"sphere": "1.9,4.6,0.8,1.5"}])
+def test_a_first_look_that_settles_some_counts_leaves_the_rest_to_be_counted(
+        memory, monkeypatch, grouped, asked):
+    monkeypatch.setattr(facets, "CAP", 5)
+    monkeypatch.setattr(facets, "GROUPED", grouped)
+    engine = QueryEngine(memory)
+    regions = sorted(memory.clusters.distinct("search.region"))
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters, ClusterQuery(**asked),
+                                         {"region": regions})
+    for value in regions:
+        expected = engine.clusters(**{**asked, "region": [value], "limit": 0,
+                                      "count": True}).total
+        assert counts["region"][value] == min(expected, 6), (value, grouped)
+
+
 # --- the histogram of scenes over time (webui/histogram.py) ----------------------------------
 
 

@@ -31,6 +31,7 @@ CLUSTER_FIELDS = {"region": "search.region", "robot": "search.robot"}
 PER_COMMAND = 20
 BUDGET_MS = 80  # for all the counts of a page: those it leaves uncounted show no number
 GROUPED = 5000  # a search's matches grouped by region (or robot) in one first look
+NARROWING = ("text", "labelled", "object", "box", "sphere", "where")  # (ClusterFilter's)
 
 
 def facet_counts(scenes: Collection, query: Mapping, choices: Mapping[str, list[str]],
@@ -48,14 +49,20 @@ def facet_counts(scenes: Collection, query: Mapping, choices: Mapping[str, list[
 def cluster_facet_counts(runner: Runner, clusters: Collection, query: ClusterFilter,
                          choices: Mapping[str, list[str]]) -> dict[str, dict[str, int | None]]:
     """The search page's: filter name (region, robot) -> value -> clusters matching the query
-    with that value instead of the filter's own. First the rest of the query's matches are
-    grouped by the filter's field, at most GROUPED of them (`grouped`): what that counts
-    needs no count of its own; the values it leaves open are counted one by one (`counted`)."""
-    deadline = time.monotonic() + BUDGET_MS / 1000
+    with that value instead of the filter's own. A query narrowed by a condition of its own
+    index (NARROWING: a text, a sphere, a predicate, ...) first has its matches grouped by
+    the filter's field, at most GROUPED of them and in at most half the time (`grouped`):
+    what that counts needs no count of its own; the values it leaves open, and all those of
+    a query of regions, robots and times alone (which their own indexes count best), are
+    counted one by one (`counted`)."""
+    start = time.monotonic()
+    deadline, first_look = start + BUDGET_MS / 1000, start + BUDGET_MS / 2000
+    narrowed = any(getattr(query, condition) for condition in NARROWING)
     asked, known = {}, {}
     for name, values in choices.items():
         match, _ = runner.run(compiled(query.model_copy(update={name: []})))
-        known[name] = grouped(clusters, match, CLUSTER_FIELDS[name], values, deadline)
+        known[name] = (grouped(clusters, match, CLUSTER_FIELDS[name], values, first_look)
+                       if narrowed else {})
         asked[name] = {value: conjunction([match, {CLUSTER_FIELDS[name]: value}])
                        for value in values if value not in known[name]}
     counts = counted(clusters, asked, deadline)

@@ -8,7 +8,9 @@ On the kitchen week (--days days, consolidated) in a scratch database:
 - review_page: the server's render time of /review over the latest 500 scenes;
 - rejection: a rejection asks for its map's belief to be rebuilt; the time until the pipeline
   has rebuilt it (the whole map: the cost grows with the map's scenes), and the same for the
-  undo.
+  undo;
+- split: the latest half of the observations of the object seen most often split off (a
+  rebuild too), and whether identity kept each apart from the observation it names.
 
 Usage: python bench/curation.py [--days N] [--repeat N]
 """
@@ -101,6 +103,23 @@ def rebuilt_after(store, change) -> float:
     return round(time.perf_counter() - start, 2)
 
 
+def split_off(store) -> tuple[float, dict]:
+    """The latest half of the observations of the object seen most often, split off: seconds
+    until the map is rebuilt, and how many of them identity then kept apart as asked."""
+    seen = store.objects.find_one(sort=[("observations", -1)])
+    theirs = [c["_id"] for c in store.clusters.find({"object_id": seen["_id"]}).sort(
+        "search.time", 1)]
+    later = theirs[len(theirs) // 2:]
+    made = []
+    seconds = rebuilt_after(store, lambda: made.extend(
+        curation.split(store, seen["_id"], later, author="bench")))
+    objects = {c["_id"]: c.get("object_id") for c in store.clusters.find(
+        {"_id": {"$in": theirs}}, {"object_id": 1})}
+    apart = sum(objects[m.apart_from] != objects[c] for m, c in zip(made, later, strict=True))
+    return seconds, {"observations": len(theirs), "split_off": len(later), "kept_apart": apart,
+                     "objects_now": len(set(objects.values()))}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--days", type=int, default=7)
@@ -127,12 +146,14 @@ def main() -> None:
             curation.reject(store, doubt.cluster_id, author="bench")))
         undo_s = rebuilt_after(store, lambda: curation.undo(store, doubt.cluster_id,
                                                               made[0].id, author="bench"))
+        split_s, kept_apart = split_off(store)
         print_json({
             "days": args.days, "scenes": len(week.scenes),
             "clusters": store.clusters.estimated_document_count(),
             "keyboard": keyboard,
             "review_page": {"window_scenes": 500, **summary(page_times)},
             "rejection": {"map_rebuilt_s": reject_s, "undo_map_rebuilt_s": undo_s},
+            "split": {"map_rebuilt_s": split_s, **kept_apart},
         })
 
 

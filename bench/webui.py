@@ -93,6 +93,14 @@ SEARCHES = {
 }
 
 
+def search_facets(page: str) -> dict:
+    """The hits on a search page, and how many of the regions it offers have a count."""
+    regions = re.search(r'<select name="region".*?</select>', page, re.S).group(0)
+    return {"hits": page.count('class="hit"'),
+            "regions_counted": len(re.findall(r"\([\d,]+\+?\)</option>", regions)),
+            "regions": regions.count("<option")}
+
+
 def search_pages(args: argparse.Namespace, big: Scene) -> dict:
     """Render times of the search page over a memory of args.search_clusters clusters, and of
     the scene viewer, its 3D view and a cluster page of `big` stored in that memory."""
@@ -108,7 +116,7 @@ def search_pages(args: argparse.Namespace, big: Scene) -> dict:
         client = TestClient(create_app(store, Settings(db=store.db.name)),
                             base_url="http://127.0.0.1")
         pages = {name: {**timed(client, path := "/search?" + urlencode(query), args.repeat),
-                        "hits": client.get(path).text.count('class="hit"')}
+                        **search_facets(client.get(path).text)}
                  for name, query in SEARCHES.items()}
         first = client.get("/search?text=cereal").text
         second = html.unescape(re.search(r'class="next" href="([^"]+)"', first).group(1))

@@ -867,6 +867,10 @@ def _object_id(_ctx, param, value: str | None):
     raise click.ClickException(f"{param.name}: {value!r} is not an id (24 hexadecimal digits)")
 
 
+def _object_ids(ctx, param, values: tuple[str, ...]) -> list:
+    return [_object_id(ctx, param, value) for value in values]
+
+
 def _author_option(command):
     import getpass
 
@@ -877,7 +881,7 @@ def _author_option(command):
 @main.group()
 def correct() -> None:
     """Correct what the annotators said of a cluster: relabel it, reject it, merge two objects,
-    undo a correction. Each is stored beside the annotations, with who and when (README:
+    split one, undo a correction. Each is stored beside the annotations, with who and when (README:
     Correcting labels)."""
 
 
@@ -890,7 +894,9 @@ def _made(make, *args) -> None:
             made = make(store, *args)
         except curation.NotCorrectable as error:
             raise click.ClickException(str(error)) from None
-    click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
+    for correction in made if isinstance(made, list) else [made]:
+        click.echo(f"{curation.KINDS[correction.type_name]} {correction.id} by "
+                   f"{correction.author}")
 
 
 @correct.command(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
@@ -928,6 +934,19 @@ def merge(cluster, other, author: str) -> None:
 
 
 @correct.command(epilog=example(
+    "pmem correct split 6b0623a127e307f8fff741d2 6b06239e27e307f8fff741bc"))
+@click.argument("object_id", metavar="OBJECT", callback=_object_id)
+@click.argument("clusters", nargs=-1, required=True, callback=_object_ids)
+@_author_option
+def split(object_id, clusters, author: str) -> None:
+    """Say the observations CLUSTERS of OBJECT show another object (its map's belief is
+    rebuilt: identity keeps each apart from the object's earliest other observation)."""
+    from percept_memory.memory import curation
+
+    _made(curation.split, object_id, list(clusters), author)
+
+
+@correct.command(epilog=example(
     "pmem correct undo 6b06239e27e307f8fff741bc 6b0623a127e307f8fff741c6"))
 @click.argument("cluster", callback=_object_id)
 @click.argument("correction", callback=_object_id)
@@ -957,7 +976,8 @@ def corrections(settings: Settings, author: str | None, limit: int, as_json: boo
     if not rows:
         raise click.ClickException("no corrections" + (f" by {author}" if author else ""))
     for row in rows:
-        what = row["label"] or row["reason"] or row["other"] or row["undoes"] or ""
+        what = (row["label"] or row["reason"] or row["other"] or row["apart_from"]
+                or row["undoes"] or "")
         undone = f"  (undone by {row['undone_by']['author']})" if row["undone_by"] else ""
         click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} cluster "
                    f"{row['cluster_id']}  {what}{undone}")

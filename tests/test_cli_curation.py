@@ -47,7 +47,23 @@ def test_a_relabel_and_its_undo_from_the_command_line(env, store):
     assert "(undone by bo)" in pmem(env, "corrections", "--author", "ana").output
 
 
+def test_a_split_from_the_command_line(env, store):
+    obj = store.db[OBJECTS].find_one({"observations": {"$gte": 3}})
+    clusters = [c["_id"] for c in store.clusters.find({"object_id": obj["_id"]}).sort(
+        "search.time", -1).limit(2)]
+    made = pmem(env, "correct", "split", str(obj["_id"]), *map(str, clusters),
+                "--author", "ana")
+    assert made.exit_code == 0, made.output
+    lines = [line.split() for line in made.output.strip().splitlines()]
+    assert [(kind, author) for kind, _, _, author in lines] == [("split", "ana")] * 2
+    rows = json.loads(pmem(env, "corrections", "--json", "--limit", "2").output)
+    assert {r["kind"] for r in rows} == {"split"} and {r["cluster_id"] for r in rows} == set(
+        map(str, clusters))
+
+
 @pytest.mark.parametrize("args, words", [
+    (["correct", "split", "OBJECT", "nope"], "clusters: 'nope' is not an id"),
+    (["correct", "split", "OBJECT", "CLUSTER"], "is not an observation of object"),
     (["correct", "relabel", "nope", "mug"], "cluster: 'nope' is not an id"),
     (["correct", "relabel", str(ObjectId()), "mug"], "no cluster"),
     (["correct", "undo", "CLUSTER", str(ObjectId())], "no correction"),
@@ -55,8 +71,10 @@ def test_a_relabel_and_its_undo_from_the_command_line(env, store):
     (["correct", "merge", "CLUSTER", "CLUSTER"], "itself"),
 ])
 def test_bad_corrections_are_one_line_and_exit_1(env, store, args, words):
-    cluster = str(store.clusters.find_one({"object_id": {"$ne": None}})["_id"])
-    result = pmem(env, *[cluster if a == "CLUSTER" else a for a in args], "--author", "ana")
+    found = store.clusters.find_one({"object_id": {"$ne": None}})
+    other = store.db[OBJECTS].find_one({"_id": {"$ne": found["object_id"]}})
+    named = {"CLUSTER": str(found["_id"]), "OBJECT": str(other["_id"])}
+    result = pmem(env, *[named.get(a, a) for a in args], "--author", "ana")
     assert result.exit_code == 1, result.output
     (line,) = result.output.strip().splitlines()
     assert line.startswith("Error: ") and words in line, line

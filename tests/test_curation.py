@@ -17,7 +17,14 @@ from percept_memory.memory import curation
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.pipeline import request_rebuild
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
-from percept_memory.memory.types import Classification, Rejection, Relabel, SameObject, Undo
+from percept_memory.memory.types import (
+    Classification,
+    DifferentObject,
+    Rejection,
+    Relabel,
+    SameObject,
+    Undo,
+)
 from percept_memory.memory.types.curation import verdict
 from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
@@ -131,11 +138,75 @@ def test_a_merge_with_itself_or_an_unknown_cluster_is_refused(memory):
         curation.merge(memory, a, ObjectId(), author="ana")
 
 
+def observed_often(store, skip: int = 0) -> tuple:
+    """An object seen in many scenes, none of its clusters corrected, and its clusters in
+    time order."""
+    objects = store.db[OBJECTS].find({"observations": {"$gte": 6}}).sort("_id", 1)
+    for obj in objects:
+        clusters = [c["_id"] for c in store.clusters.find(
+            {"object_id": obj["_id"]}, {"annotations": 1, "search.time": 1}).sort(
+            "search.time", 1) if not any("author" in a for a in c["annotations"])]
+        if len(clusters) == obj["observations"]:
+            if skip == 0:
+                return obj["_id"], clusters
+            skip -= 1
+    raise AssertionError("no object seen often enough")
+
+
+def test_a_split_keeps_the_observations_apart_until_undone(memory):
+    object_id, clusters = observed_often(memory)
+    kept, split_off = clusters[:len(clusters) // 2], clusters[len(clusters) // 2:]
+    objects = memory.db[OBJECTS].count_documents({})
+    made = curation.split(memory, object_id, split_off, author="ana")
+    assert [type(m) for m in made] == [DifferentObject] * len(split_off)
+    assert {m.apart_from for m in made} == {kept[0]}  # the object's earliest other observation
+    settle(memory)
+    now = {c: memory.clusters.find_one({"_id": c})["object_id"] for c in clusters}
+    assert all(now[c] != now[kept[0]] for c in split_off)
+    assert len(set(now.values())) >= 2 and memory.db[OBJECTS].count_documents({}) > objects
+    rows = curation.audit(memory, len(made))
+    assert {(r["kind"], r["apart_from"]) for r in rows} == {("split", kept[0])}
+    for correction, cluster in zip(made, split_off, strict=True):
+        curation.undo(memory, cluster, correction.id, author="ana")
+    settle(memory)
+    assert len({memory.clusters.find_one({"_id": c})["object_id"] for c in clusters}) == 1
+    assert memory.db[OBJECTS].count_documents({}) == objects
+
+
+def test_a_split_of_the_first_observations_is_stored_on_the_later_cluster(memory):
+    object_id, clusters = observed_often(memory, skip=1)
+    made = curation.split(memory, object_id, clusters[:2], author="bo")
+    anchor = clusters[2]  # the earliest observation not split off is the later of each pair
+    assert {m.apart_from for m in made} == set(clusters[:2])
+    assert {a.id for a in memory.get_cluster(anchor).annotations} >= {m.id for m in made}
+    settle(memory)
+    now = {c: memory.clusters.find_one({"_id": c})["object_id"] for c in clusters}
+    assert now[anchor] not in (now[clusters[0]], now[clusters[1]])
+
+
+@pytest.mark.parametrize("which, message", [
+    (lambda clusters, other: [], "clusters: name 1 to"),
+    (lambda clusters, other: clusters, "all the object's observations"),
+    (lambda clusters, other: [clusters[0], other], "is not an observation of object"),
+])
+def test_a_split_that_cannot_be_is_refused_and_writes_nothing(memory, which, message):
+    object_id, clusters = observed_often(memory, skip=2)
+    other = memory.clusters.find_one({"object_id": {"$nin": [object_id, None]}})["_id"]
+    corrected = curation.counts(memory)["clusters"]
+    with pytest.raises(curation.NotCorrectable, match=message):
+        curation.split(memory, object_id, which(clusters, other), author="ana")
+    assert curation.counts(memory)["clusters"] == corrected
+    with pytest.raises(NotFound):
+        curation.split(memory, ObjectId(), clusters[:1], author="ana")
+
+
 def test_the_belief_with_corrections_built_live_equals_the_one_rebuilt(memory):
     relabelled = a_classified_cluster(memory, skip=5)
     curation.relabel(memory, relabelled.id, "teapot", author="ana")
     curation.reject(memory, a_classified_cluster(memory, skip=8).id, author="bo")
     curation.merge(memory, *two_objects(memory, skip=6), author="cy")
+    object_id, clusters = observed_often(memory, skip=3)
+    curation.split(memory, object_id, clusters[-2:], author="cy")
     settle(memory)
     live = beliefs(memory)
     assert live[relabelled.id][0][0] == "teapot"

@@ -5,6 +5,7 @@ a collection scan), capped; and the scene log's histogram over time (webui/histo
 from __future__ import annotations
 
 import re
+from urllib.parse import parse_qsl, urlsplit
 
 import pytest
 from fastapi.testclient import TestClient
@@ -126,6 +127,22 @@ def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query
     assert f'table ({facets.shown(table)})</option>' in text or table == 0
 
 
+@pytest.mark.parametrize("grouped", [1, 60, 5000])
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"sphere": "1.9,4.6,0.8,1.5"}])
+def test_a_first_look_that_settles_some_counts_leaves_the_rest_to_be_counted(
+        memory, monkeypatch, grouped, asked):
+    monkeypatch.setattr(facets, "CAP", 5)
+    monkeypatch.setattr(facets, "GROUPED", grouped)
+    engine = QueryEngine(memory)
+    regions = sorted(memory.clusters.distinct("search.region"))
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters, ClusterQuery(**asked),
+                                         {"region": regions})
+    for value in regions:
+        expected = engine.clusters(**{**asked, "region": [value], "limit": 0,
+                                      "count": True}).total
+        assert counts["region"][value] == min(expected, 6), (value, grouped)
+
+
 # --- the histogram of scenes over time (webui/histogram.py) ----------------------------------
 
 
@@ -167,5 +184,57 @@ def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
             tab.keyboard.press("Enter")
         assert "robot=tiago" in tab.url and "since=" in tab.url and "until=" in tab.url
         expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+@pytest.mark.parametrize("leftwards", [False, True])
+def test_dragging_across_the_bars_sets_the_time_range_to_them(memory, leftwards):
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/scenes?robot=tiago")
+        bars = tab.locator("figure.histogram a.bar")
+        expect(bars).to_have_count(histogram.BARS)
+        low, high = 3, 9
+        spans = [dict(parse_qsl(urlsplit(bars.nth(i).get_attribute("href")).query))
+                 for i in (low, high)]
+        scenes = sum(int(bars.nth(i).get_attribute("aria-label").split()[0])
+                     for i in range(low, high + 1))
+        start, end = (bars.nth(i).locator("rect.hit").bounding_box() for i in (low, high))
+        if leftwards:
+            start, end = end, start
+        tab.mouse.move(start["x"] + start["width"] / 2, start["y"] + 10)
+        tab.mouse.down()
+        tab.mouse.move(end["x"] + end["width"] / 2, end["y"] + 10, steps=8)
+        expect(tab.locator("figure.histogram a.bar.brushed")).to_have_count(high - low + 1)
+        if not leftwards:
+            tab.locator("figure.histogram").screenshot(
+                path=str(SCREENSHOTS / "histogram-brush.png"))
+        with tab.expect_navigation():
+            tab.mouse.up()
+        given = dict(parse_qsl(urlsplit(tab.url).query))
+        assert given == {"robot": "tiago", "since": spans[0]["since"],
+                         "until": spans[1]["until"]}
+        query = scene_filter({**dict.fromkeys((*CHOICES, "since", "until"), ""), **given},
+                             choices_of(memory)["type"])
+        assert memory.scenes.count_documents(query) == scenes
+        expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_a_click_on_one_bar_still_follows_its_link(memory):
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/scenes?robot=tiago")
+        bar = tab.locator("figure.histogram a.bar").nth(5)
+        href = bar.get_attribute("href")
+        with tab.expect_navigation():
+            bar.locator("rect.hit").click()
+        assert tab.url == url + href
         browser.close()
     assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

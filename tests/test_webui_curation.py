@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 from playwright.sync_api import expect, sync_playwright
 
 from percept_memory.demo import kitchen_week
+from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory import curation
 from percept_memory.memory.schema import OBJECTS
 from percept_memory.memory.settings import Settings
@@ -273,3 +274,74 @@ def test_an_object_is_merged_from_its_page_by_keyboard(memory):
     other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
     this_last = memory.db[OBJECTS].find_one({"_id": cluster["object_id"]})["last_cluster"]
     assert {row["cluster_id"], row["other"]} == {other_last, this_last}
+
+
+def often_seen(store, skip: int = 0) -> dict:
+    """An object seen in several scenes, none of its clusters corrected."""
+    for obj in store.db[OBJECTS].find({"observations": {"$gte": 4}}).sort("_id", -1).skip(skip):
+        if not store.clusters.find_one({"object_id": obj["_id"],
+                                        "annotations.author": {"$exists": True}}):
+            return obj
+    raise AssertionError("no object seen often enough")
+
+
+def test_an_object_is_split_over_http_and_a_bad_split_is_refused(client, memory):
+    obj = often_seen(memory, skip=3)
+    theirs = [c["_id"] for c in memory.clusters.find({"object_id": obj["_id"]}).sort(
+        "search.time", 1)]
+    stranger = memory.clusters.find_one({"object_id": {"$nin": [obj["_id"], None]}})["_id"]
+    path = f"/api/objects/{obj['_id']}/split"
+    for body, field in [({"clusters": [], "author": "ana"}, "body.clusters"),
+                        ({"clusters": [str(stranger)], "author": "ana"}, "body.clusters"),
+                        ({"clusters": ["nope"], "author": "ana"}, "body.clusters.0"),
+                        ({"clusters": [str(theirs[-1])], "author": ""}, "body.author")]:
+        error = error_of(client.post(path, headers=JSON, json=body), 422)
+        assert field in [p["path"] for p in error["problems"]], error
+    error_of(client.post(f"/api/objects/{ObjectId()}/split", headers=JSON,
+                         json={"clusters": [str(theirs[-1])], "author": "ana"}), 404)
+    assert not memory.clusters.find_one({"object_id": obj["_id"],
+                                         "annotations.author": {"$exists": True}})
+    answer = client.post(path, headers=JSON, json={"clusters": [str(c) for c in theirs[-2:]],
+                                                   "author": "ana"})
+    assert answer.status_code == 201, answer.text
+    made = answer.json()["corrections"]
+    assert [m["_type"] for m in made] == ["pm.annotation.DifferentObject"] * 2
+    assert {m["apart_from"] for m in made} == {str(theirs[0])}
+    rows = client.get("/api/corrections?limit=2").json()["corrections"]
+    assert {(r["kind"], r["apart_from"]) for r in rows} == {("split", str(theirs[0]))}
+    assert "/api/objects/{object_id}/split" in client.get("/openapi.json").json()["paths"]
+
+
+def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(memory):
+    obj = often_seen(memory)
+    app = create_app(memory, Settings(consolidator=False))
+    with served(app) as url, sync_playwright() as playwright:
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
+        tab.goto(f"{url}/objects/{obj['_id']}")
+        tab.locator("#author").fill("ana")
+        boxes = tab.locator("form.split input[name=clusters]")
+        boxes.first.focus()  # the newest observations come first
+        tab.keyboard.press("Space")
+        tab.keyboard.press("Tab")
+        tab.keyboard.press("Space")
+        ticked = [boxes.nth(i).get_attribute("value") for i in range(2)]
+        tab.keyboard.press("Tab")  # past the other observations to the button
+        while tab.evaluate("document.activeElement.type") == "checkbox":
+            tab.keyboard.press("Tab")
+        expect(tab.get_by_role("button", name="Split off as another object")).to_be_focused()
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.locator("form.split").screenshot(path=str(SCREENSHOTS / "split.png"))
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        memory_pipeline(memory).drain(timeout=300)
+        now = {c: memory.clusters.find_one({"_id": ObjectId(c)})["object_id"] for c in ticked}
+        tab.goto(f"{url}/corrections")
+        expect(tab.locator("table.audit tbody tr").first).to_contain_text(
+            "another object than an earlier cluster")
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+    rows = curation.audit(memory, 2)
+    assert {r["kind"] for r in rows} == {"split"} and {r["author"] for r in rows} == {"ana"}
+    anchor = rows[0]["apart_from"]
+    assert memory.clusters.find_one({"_id": anchor})["object_id"] not in now.values()

@@ -18,8 +18,10 @@ Identity decides on the evidence a cluster arrived with (documents.ARRIVED_KEY):
 appended later by enrichment name the object (naming.py) but never change a past decision, so
 a rebuild decides exactly as the live pipeline did. Names come from naming.py. A cluster a
 person rejected (types/curation.py) is no object: it is left out; a cluster a person said shows
-the same object as an earlier one has the two objects merged; such a correction made after
-its scene was consolidated asks for the map to be rebuilt (memory/curation.py).
+the same object as an earlier one has the two objects merged; a cluster a person said shows
+another object than an earlier one is never taken for that one's object, nor merged with it;
+such a correction made after its scene was consolidated asks for the map to be rebuilt
+(memory/curation.py).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
-from .types.curation import rejected, same_as
+from .types.curation import apart_from, rejected, same_as
 from .view import View
 
 MAX_UNSEEN_CANDIDATES = 32
@@ -140,7 +142,8 @@ class Consolidation:
                  for o, in_view in believed if o["last_cluster"] in seen_as]
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
-        decisions = resolve(new, known, self.params, calibration)
+        apart = self._kept_apart(kept, later, session)
+        decisions = resolve(new, known, self.params, calibration, apart)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in kept}
@@ -170,10 +173,10 @@ class Consolidation:
         if asked or any(d.lookalikes for d in decisions):
             later.write()  # what follows reads the events and moves the links
         merged: dict = {}  # object -> the object it was merged into
-        for keep, twin in self._remembered_twice(decisions, clusters, session):
+        for keep, twin in self._remembered_twice(decisions, clusters, apart, session):
             self._merge(keep, twin, scene, places, session)
             merged[twin] = keep
-        for keep, twin in self._asked_to_merge(asked, seen_as, session):
+        for keep, twin in self._asked_to_merge(asked, seen_as, apart, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
             if keep != twin:
                 self._merge(keep, twin, scene, places, session)
@@ -181,20 +184,37 @@ class Consolidation:
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
 
-    def _asked_to_merge(self, asked: dict, seen_as: dict, session) -> list:
+    def _asked_to_merge(self, asked: dict, seen_as: dict, apart: dict, session) -> list:
         """(object, the object to merge into it): a cluster of this scene is, a person said,
         the same object as an earlier cluster (types/curation.py: SameObject), whose object
-        identity has decided on by now. One kept apart from the other is merged into it."""
+        identity has decided on by now. One kept apart from the other is merged into it,
+        unless a person also said the cluster is not that object (the split stands)."""
         if not asked:
             return []  # (no round trip: people ask for few scenes)
-        earlier = {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
-            {"_id": {"$in": [c for others in asked.values() for c in others]}},
-            {"object_id": 1}, session=session)}
+        earlier = self._objects_of([c for others in asked.values() for c in others], session)
         return [(seen_as[key], earlier[other]) for key, others in asked.items()
                 for other in others
-                if earlier.get(other) is not None and key in seen_as]
+                if earlier.get(other) is not None and key in seen_as
+                and earlier[other] not in apart.get(key, ())]
 
-    def _remembered_twice(self, decisions: list[Decision], clusters: dict, session) -> list:
+    def _kept_apart(self, clusters: list[Cluster], later: Later, session) -> dict:
+        """Cluster id -> the objects a person said it is not: those of the earlier clusters
+        it was split from (types/curation.py: DifferentObject), decided on by now."""
+        said = {c.id: others for c in clusters if (others := apart_from(c.annotations))}
+        if not said:
+            return {}
+        later.write()  # the links of this batch's earlier scenes are read
+        objects = self._objects_of([c for others in said.values() for c in others], session)
+        return {key: {objects[c] for c in others if objects.get(c) is not None}
+                for key, others in said.items()}
+
+    def _objects_of(self, cluster_ids: list, session) -> dict:
+        """Cluster id -> the object identity took it for (None: none, or not decided yet)."""
+        return {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
+            {"_id": {"$in": cluster_ids}}, {"object_id": 1}, session=session)}
+
+    def _remembered_twice(self, decisions: list[Decision], clusters: dict, apart: dict,
+                          session) -> list:
         """(object, its twin): an object seen now that looks beyond doubt like another known
         object not seen now, the two never seen together in one scene: one object
         remembered twice (e.g. moved while turned to a side not seen before, then turned
@@ -205,8 +225,8 @@ class Consolidation:
             if decision.key not in clusters or decision.object is None:
                 continue
             for other in decision.lookalikes:
-                if other not in taken and not self._seen_together(decision.object, other,
-                                                                  session):
+                if other not in taken and other not in apart.get(decision.key, ()) \
+                        and not self._seen_together(decision.object, other, session):
                     pairs.append((decision.object, other))
                     taken.add(other)
         return pairs

@@ -1,9 +1,10 @@
-"""Corrections by people: relabel a cluster, reject it, merge two objects, undo any of them;
-and the audit of them.
+"""Corrections by people: relabel a cluster, reject it, merge two objects, split one, undo any
+of them; and the audit of them.
 
     relabel(store, cluster_id, "mug", author="ana")     # the object seen here is a mug
     reject(store, cluster_id, author="ana")             # no object is here
     merge(store, cluster_id, other_id, author="ana")    # the same object is seen in both
+    split(store, object_id, [cluster_id], author="ana") # these observations are another object
     undo(store, cluster_id, correction_id, author="bo") # takes one back (itself recorded)
     audit(store)                                        # every correction, newest first
 
@@ -11,9 +12,9 @@ Each is an annotation appended to the cluster (types/curation.py), beside what a
 in one transaction with what it changes in the belief: the names of the cluster's object follow
 at once (store.py renames it, naming.py weighs the correction above everything else). A
 correction that changes what identity decides (a rejection: the cluster is no object; a
-merge: two objects are one; or taking one back) also asks, in the same transaction, for its
-map's belief to be rebuilt by the memory pipeline (pipeline.py): identity then decides the
-map's scenes again with what people said.
+merge: two objects are one; a split: one object is two; or taking one back) also asks, in the
+same transaction, for its map's belief to be rebuilt by the memory pipeline (pipeline.py):
+identity then decides the map's scenes again with what people said.
 """
 
 from __future__ import annotations
@@ -23,18 +24,29 @@ from datetime import UTC, datetime
 
 from bson import ObjectId
 from pydantic import TypeAdapter, ValidationError
+from pymongo import ASCENDING
 
 from percept_memory.converters import name_of
 
 from .errors import NotFound
-from .schema import CLUSTERS, MAPS, SCENES
+from .schema import CLUSTERS, MAPS, OBJECTS, SCENES
 from .store import MemoryStore
 from .types import Cluster, Rejection, Relabel, Undo, timestamp_from_datetime
-from .types.curation import Author, Correction, SameObject, identity_said, in_force
+from .types.curation import (
+    Author,
+    Correction,
+    DifferentObject,
+    SameObject,
+    identity_said,
+    in_force,
+)
 
 AUDIT_LIMIT = 1000
+SPLIT_LIMIT = 1000  # observations split off at once
 KINDS = {name_of(Relabel): "relabel", name_of(Rejection): "reject",
-         name_of(SameObject): "merge", name_of(Undo): "undo"}
+         name_of(SameObject): "merge", name_of(DifferentObject): "split",
+         name_of(Undo): "undo"}
+UNDOABLE = (Relabel, Rejection, SameObject, DifferentObject)
 _author = TypeAdapter(Author)
 
 
@@ -61,29 +73,64 @@ def merge(store: MemoryStore, cluster_id: ObjectId, other_id: ObjectId,
           author: str) -> SameObject:
     """Say the two clusters show the same object (their objects are merged). Stored on the
     later of the two, naming the earlier, which identity has decided on by then."""
-    scenes = {doc["_id"]: doc["scene_id"] for doc in store.db[CLUSTERS].find(
-        {"_id": {"$in": [cluster_id, other_id]}}, {"scene_id": 1})}
-    for key in (cluster_id, other_id):
-        if key not in scenes:
-            raise NotFound("cluster", key)
+    earlier, later = _in_time_order(store, [cluster_id, other_id])
     if cluster_id == other_id:
         raise NotCorrectable("other: a cluster is the same object as itself already", "other")
+    return _append(store, later, lambda: SameObject(other=earlier, **_who(author)))
+
+
+def split(store: MemoryStore, object_id: ObjectId, cluster_ids: list[ObjectId],
+          author: str) -> list[DifferentObject]:
+    """Say these observations of the object show another object: each is kept apart from the
+    object's earliest other observation (one correction per pair, stored on the later of the
+    two, naming the earlier, as a merge is). Identity then decides the map again: the
+    observations split off go together to another object, by their likeness, unless a
+    person says more."""
+    cluster_ids = list(dict.fromkeys(cluster_ids))
+    if not 0 < len(cluster_ids) <= SPLIT_LIMIT:
+        raise NotCorrectable(f"clusters: name 1 to {SPLIT_LIMIT} observations of the object "
+                             "to split off", "clusters")
+    if store.db[OBJECTS].find_one({"_id": object_id}, {"_id": 1}) is None:
+        raise NotFound("object", object_id)
+    theirs = {doc["_id"] for doc in store.db[CLUSTERS].find(
+        {"_id": {"$in": cluster_ids}, "object_id": object_id}, {"_id": 1})}
+    if stray := [key for key in cluster_ids if key not in theirs]:
+        raise NotCorrectable(f"clusters: {stray[0]} is not an observation of object "
+                             f"{object_id}", "clusters")
+    kept = next(store.db[CLUSTERS].find(
+        {"object_id": object_id, "_id": {"$nin": cluster_ids}}, {"_id": 1}).sort(
+        [("object_id", ASCENDING), ("search.time", ASCENDING)]).limit(1), None)
+    if kept is None:
+        raise NotCorrectable("clusters: these are all the object's observations: split off "
+                             "fewer", "clusters")
+    who = _who(author)
+    return [_append(store, later, lambda earlier=earlier: DifferentObject(
+                apart_from=earlier, **who))
+            for earlier, later in (_in_time_order(store, [kept["_id"], key])
+                                   for key in cluster_ids)]
+
+
+def _in_time_order(store: MemoryStore, cluster_ids: list[ObjectId]) -> list[ObjectId]:
+    """The clusters in the order of their scenes' times (then ids), all of one map: how
+    identity meets them."""
+    scenes = {doc["_id"]: doc["scene_id"] for doc in store.db[CLUSTERS].find(
+        {"_id": {"$in": cluster_ids}}, {"scene_id": 1})}
+    for key in cluster_ids:
+        if key not in scenes:
+            raise NotFound("cluster", key)
     seen = {doc["_id"]: doc for doc in store.db[SCENES].find(
         {"_id": {"$in": list(set(scenes.values()))}}, {"map": 1, "timestamp": 1})}
-    (earlier, _), (later, _) = sorted(
-        ((key, seen[scenes[key]]) for key in (cluster_id, other_id)),
-        key=lambda item: (item[1]["timestamp"], item[0]))
-    if seen[scenes[earlier]].get("map") != seen[scenes[later]].get("map"):
+    if len({seen[scene].get("map") for scene in scenes.values()}) > 1:
         raise NotCorrectable("other: observations in different maps are never one object",
                              "other")
-    return _append(store, later, lambda: SameObject(other=earlier, **_who(author)))
+    return sorted(cluster_ids, key=lambda key: (seen[scenes[key]]["timestamp"], key))
 
 
 def undo(store: MemoryStore, cluster_id: ObjectId, correction_id: ObjectId,
          author: str) -> Undo:
     """Take back a correction of the cluster that is in force."""
     cluster = store.get_cluster(cluster_id)
-    if not any(isinstance(a, Relabel | Rejection | SameObject) and a.id == correction_id
+    if not any(isinstance(a, UNDOABLE) and a.id == correction_id
                for a in in_force(cluster.annotations)):
         raise NotCorrectable(f"cluster {cluster_id} has no correction {correction_id} in force "
                              "to undo")
@@ -155,7 +202,7 @@ def _row(row: dict, undone_by: dict | None) -> dict:
     return {"id": said["_id"], "kind": KINDS.get(said.get("_type"), said.get("_type")),
             "author": said.get("author"), "time": said.get("time"),
             "label": said.get("class_name"), "reason": said.get("reason") or None,
-            "other": said.get("other"),
+            "other": said.get("other"), "apart_from": said.get("apart_from"),
             "undoes": said.get("undoes"), "cluster_id": row["_id"],
             "scene_id": row.get("scene_id"), "object_id": row.get("object_id"),
             "region": row.get("region"),

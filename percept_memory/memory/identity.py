@@ -27,7 +27,7 @@ globally consistent (no object claimed twice) and runs in milliseconds:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from functools import cache, cached_property
@@ -418,10 +418,12 @@ def explanations(look: float, place: float, in_view: bool, params: Parameters,
 
 def resolve(new: Sequence[Observation], known: Sequence[Known],
             params: Parameters | None = None,
-            calibration: Calibration | None = None) -> list[Decision]:
+            calibration: Calibration | None = None,
+            apart: Mapping[Any, Collection] | None = None) -> list[Decision]:
     """One joint decision for a scene: a Decision per new observation (in order), then one
     per known object left unmatched (hidden or disappear). A `calibration` kept by the caller
-    learns from the confident decisions; without one, the prior calibration is used."""
+    learns from the confident decisions; without one, the prior calibration is used.
+    `apart`: observation key -> the known objects a person said it is not (no likelihood)."""
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
     # the cues of every pair, then their odds at once; the new observations with each other
@@ -449,6 +451,9 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
+        for j in _kept_apart(new[i], known, apart):
+            row[j] = dict.fromkeys(row[j], 0.0)
+            likelihood[i, j] = 0.0
         table.append(row)
     gone = [params.prior_gone if k.in_view else 1.0 for k in known]  # hidden costs nothing
     assigned = _assign(likelihood, params.prior_appear, gone)
@@ -478,6 +483,13 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
     _learn(calibration, decisions[:len(new)], assigned, looked, places, looked_apart, params)
     return decisions
+
+
+def _kept_apart(observation: Observation, known: Sequence[Known],
+                apart: Mapping[Any, Collection] | None) -> list[int]:
+    """The known objects a person said the observation is not (types/curation.py)."""
+    said = (apart or {}).get(observation.key, ())
+    return [j for j, candidate in enumerate(known) if candidate.key in said]
 
 
 def _superseded(alike: np.ndarray, known: Sequence[Known], beyond_doubt: float

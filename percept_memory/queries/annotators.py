@@ -5,17 +5,17 @@ classification's class, a detection's name) against each other and against the g
 (RoboSherlock's GroundTruth annotations) and the classes people gave in corrections (the
 relabel in force), with precision and recall per class.
 
-Times come from the scenes' log lines (`duration_ms`). Percentiles need every duration, which
-MongoDB 6.0 cannot rank in an aggregation ($percentile came with 7.0), so the window's log
-lines are read once (newest scenes by index) and summed up here; the clusters' verdicts are
-read by the window's scene ids (index `scene`). The window is a count of scenes, so either
-read is bounded however large the memory.
+Times come from the scenes' log lines (`duration_ms`). The database sums the window's lines up
+per annotator and hour (newest scenes by index): counts, the scenes warned and failed in, and
+the durations, which come back as plain numbers and are ranked here (MongoDB 6.0 cannot rank
+in an aggregation: $percentile came with 7.0); the latest problem lines come in a second
+command, and the clusters' verdicts are read by the window's scene ids (index `scene`). The
+window is a count of scenes, so every read is bounded however large the memory.
 """
 
 from __future__ import annotations
 
 from collections import Counter, defaultdict
-from dataclasses import dataclass, field
 from itertools import combinations, product
 
 import numpy as np
@@ -55,69 +55,68 @@ CORRECTIONS = [name_of(kind) for kind in (Relabel, Rejection, Undo)]
 Cluster = dict[str, set[str]]  # who (annotator or GROUND_TRUTH) -> the classes they gave
 
 
-@dataclass
-class _Hour:
-    """What one annotator logged in one hour: its times, the scenes it warned and failed in."""
-
-    times: list[float] = field(default_factory=list)
-    warned: set = field(default_factory=set)
-    failed: set = field(default_factory=set)
-
-
 def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
     """Per annotator, over the latest scenes: annotations, runs, mean / 95th percentile /
     longest time, warnings and errors; the same hour by hour (median and 95th percentile, the
     share of scenes warned or failed in); the latest warning and error lines; and the
     confusion tables of the classes annotators gave, against each other and the ground truth."""
     scenes = yield from _window(w)
-    durations: dict[str, list[float]] = defaultdict(list)
+    if not scenes:
+        return AnnotatorReport(scenes=0, first=None, last=None, annotators=[], hours=[],
+                               problems=[], comparisons=[])
+    scenes_in_hour = Counter(s["timestamp"] // HOUR_NS * HOUR_NS for s in scenes)
+    logged = yield Aggregate(SCENES, [*_latest(w), {"$unwind": "$log"}, {"$group": {
+        "_id": {"source": "$log.source", "hour": {"$subtract": [
+            "$timestamp", {"$mod": ["$timestamp", HOUR_NS]}]}},
+        "times": {"$push": {"$cond": [{"$isNumber": "$log.duration_ms"}, "$log.duration_ms",
+                                      "$$REMOVE"]}},
+        "warned": {"$addToSet": {"$cond": [{"$eq": ["$log.level", "warning"]}, "$_id",
+                                           "$$REMOVE"]}},
+        "failed": {"$addToSet": {"$cond": [{"$eq": ["$log.level", "error"]}, "$_id",
+                                           "$$REMOVE"]}},
+        "warnings": {"$sum": {"$cond": [{"$eq": ["$log.level", "warning"]}, 1, 0]}},
+        "errors": {"$sum": {"$cond": [{"$eq": ["$log.level", "error"]}, 1, 0]}}}}])
+    hourly: dict[tuple[str, int], dict] = {}
+    for row in logged:  # a missing and an empty source are one: no annotator
+        key = (row["_id"].get("source") or NO_SOURCE, row["_id"]["hour"])
+        if key in hourly:
+            row = {k: hourly[key][k] + row[k] for k in ("times", "warned", "failed",
+                                                         "warnings", "errors")}
+        hourly[key] = row
     totals: dict[str, AnnotatorTotals] = {}
-    hourly: dict[tuple[str, int], _Hour] = defaultdict(_Hour)
-    scenes_in_hour: Counter = Counter()
-    problems = []
-    for scene in scenes:
-        hour = scene["timestamp"] // HOUR_NS * HOUR_NS
-        scenes_in_hour[hour] += 1
-        for line in scene.get("log") or []:
-            name = line.get("source") or NO_SOURCE
-            total = totals.setdefault(name, AnnotatorTotals(annotator=name))
-            logged = hourly[name, hour]
-            if isinstance(line.get("duration_ms"), int | float):
-                durations[name].append(line["duration_ms"])
-                logged.times.append(line["duration_ms"])
-            level = line.get("level")
-            if level == "warning":
-                total.warnings += 1
-                logged.warned.add(scene["_id"])
-            elif level == "error":
-                total.errors += 1
-                logged.failed.add(scene["_id"])
-            if level in ("warning", "error") and len(problems) < PROBLEMS_SHOWN:
-                problems.append(ProblemLine(scene_id=scene["_id"], time=scene["timestamp"],
-                                            annotator=name, level=level,
-                                            message=str(line.get("message", ""))))
-    for name, values in durations.items():
-        total = totals[name]
-        total.runs, total.mean_ms = len(values), float(np.mean(values))
-        total.p95_ms, total.max_ms = float(np.percentile(values, 95)), float(max(values))
-    if scenes:
-        counted = yield from stats.annotations(ClusterFilter(
-            after=scenes[-1]["timestamp"], before=scenes[0]["timestamp"],
-            robot=[w.robot] if w.robot else []))
-        for count in counted.by_annotator:
-            name = count.annotator or NO_SOURCE
-            total = totals.setdefault(name, AnnotatorTotals(annotator=name))
-            total.annotations += count.count
+    for (name, _), row in sorted(hourly.items()):
+        total = totals.setdefault(name, AnnotatorTotals(annotator=name))
+        total.warnings += row["warnings"]
+        total.errors += row["errors"]
+    for name, total in totals.items():
+        values = [t for (who, _), row in hourly.items() if who == name for t in row["times"]]
+        if values:
+            total.runs, total.mean_ms = len(values), float(np.mean(values))
+            total.p95_ms, total.max_ms = float(np.percentile(values, 95)), float(max(values))
+    counted = yield from stats.annotations(ClusterFilter(
+        after=scenes[-1]["timestamp"], before=scenes[0]["timestamp"],
+        robot=[w.robot] if w.robot else []))
+    for count in counted.by_annotator:
+        name = count.annotator or NO_SOURCE
+        total = totals.setdefault(name, AnnotatorTotals(annotator=name))
+        total.annotations += count.count
     hours = [AnnotatorHour(annotator=name, hour=hour, scenes=scenes_in_hour[hour],
-                           runs=len(logged.times), warned=len(logged.warned),
-                           failed=len(logged.failed), **_percentiles(logged.times))
-             for (name, hour), logged in sorted(hourly.items())]
-    clusters = yield from _verdicts([s["_id"] for s in scenes])
+                           runs=len(row["times"]), warned=len(set(row["warned"])),
+                           failed=len(set(row["failed"])), **_percentiles(row["times"]))
+             for (name, hour), row in sorted(hourly.items())]
+    problems = yield Aggregate(SCENES, [
+        *_latest(w), {"$unwind": {"path": "$log", "includeArrayIndex": "line"}},
+        {"$match": {"log.level": {"$in": ["warning", "error"]}}},
+        {"$sort": {"timestamp": -1, "_id": -1, "line": 1}}, {"$limit": PROBLEMS_SHOWN}])
+    alike = yield from _verdict_counts([s["_id"] for s in scenes])
     return AnnotatorReport(
-        scenes=len(scenes), first=scenes[-1]["timestamp"] if scenes else None,
-        last=scenes[0]["timestamp"] if scenes else None,
+        scenes=len(scenes), first=scenes[-1]["timestamp"], last=scenes[0]["timestamp"],
         annotators=sorted(totals.values(), key=lambda t: t.annotator), hours=hours,
-        problems=problems, comparisons=comparisons([c for _, c in clusters]))
+        problems=[ProblemLine(scene_id=p["_id"], time=p["timestamp"],
+                              annotator=p["log"].get("source") or NO_SOURCE,
+                              level=p["log"]["level"], message=str(p["log"].get("message", "")))
+                  for p in problems],
+        comparisons=comparisons(alike))
 
 
 def cell(q: ConfusionCell) -> Plan[CellClusters]:
@@ -133,28 +132,30 @@ def cell(q: ConfusionCell) -> Plan[CellClusters]:
         for doc, verdicts in found[:q.limit]])
 
 
-def comparisons(clusters: list[Cluster]) -> list[Comparison]:
+def comparisons(clusters: list[tuple[Cluster, int]]) -> list[Comparison]:
     """Each annotator against the ground truth and against people's corrections, then each
     pair of annotators, on the clusters either classified, if both classified one at least; in
-    that order, those that disagree most first."""
-    annotators = sorted({who for c in clusters for who in c} - set(REFERENCES))
-    references = [r for r in REFERENCES if any(r in c for c in clusters)]
+    that order, those that disagree most first. `clusters`: what was said of clusters, and of
+    how many it was."""
+    annotators = sorted({who for c, _ in clusters for who in c} - set(REFERENCES))
+    references = [r for r in REFERENCES if any(r in c for c, _ in clusters)]
     pairs = [*((a, r) for r in references for a in annotators), *combinations(annotators, 2)]
     compared = [_compared(clusters, annotator, reference) for annotator, reference in pairs
-                if any(annotator in c and reference in c for c in clusters)]
+                if any(annotator in c and reference in c for c, _ in clusters)]
     rank = {reference: i for i, reference in enumerate(REFERENCES)}
     compared.sort(key=lambda c: (rank.get(c.reference, len(rank)), -c.disagreements))
     return compared[:MAX_COMPARISONS]
 
 
-def _compared(clusters: list[Cluster], annotator: str, reference: str) -> Comparison:
+def _compared(clusters: list[tuple[Cluster, int]], annotator: str,
+              reference: str) -> Comparison:
     cells: Counter = Counter()
     compared = disagreeing = 0
-    for verdicts in clusters:
+    for verdicts, count in clusters:
         pairs = _pairs(verdicts, annotator, reference)
-        compared += bool(pairs)
-        disagreeing += any(said != expected for said, expected in pairs)
-        cells.update(pairs)
+        compared += count * bool(pairs)
+        disagreeing += count * any(said != expected for said, expected in pairs)
+        cells.update(dict.fromkeys(pairs, count))
     return Comparison(
         annotator=annotator, reference=reference, clusters=compared, disagreements=disagreeing,
         cells=[ConfusionCount(said=s, expected=e, clusters=n) for (s, e), n in sorted(
@@ -193,21 +194,55 @@ def _percentiles(times: list[float]) -> dict:
 
 
 def _window(w: AnnotatorWindow) -> Plan[list[dict]]:
-    """The window's scenes, newest first (index `newest`, or `robot_newest`), with their logs."""
+    """The window's scenes, newest first: their ids and times (from the index `newest`, or
+    `robot_newest`, alone)."""
+    match, order = _match(w), (("timestamp", -1), ("_id", -1))
+    return (yield Find(SCENES, match, {"timestamp": 1}, sort=order, limit=w.scenes))
+
+
+def _latest(w: AnnotatorWindow) -> list[dict]:
+    """The stages that select the window's scenes with their log lines (the same index): the
+    lines are summed up in the database, and only the sums come back."""
+    return [{"$match": _match(w)}, {"$sort": {"timestamp": -1, "_id": -1}},
+            {"$limit": w.scenes},
+            {"$project": {"timestamp": 1, "log.source": 1, "log.level": 1,
+                          "log.duration_ms": 1, "log.message": 1}}]
+
+
+def _match(w: AnnotatorWindow) -> dict:
     match: dict = {}
     if w.robot is not None:
         match["robot"] = w.robot
     if w.before is not None:
         match["timestamp"] = {"$lte": w.before}
-    return (yield Find(SCENES, match, {"timestamp": 1, "log.source": 1, "log.level": 1,
-                                       "log.duration_ms": 1, "log.message": 1},
-                       sort=(("timestamp", -1), ("_id", -1)), limit=w.scenes))
+    return match
 
 
 def _verdicts(scene_ids: list) -> Plan[list[tuple[dict, Cluster]]]:
     """The clusters of these scenes that someone classified, newest first, each with who gave
     which classes."""
-    found = yield Aggregate(CLUSTERS, [
+    found = yield Aggregate(CLUSTERS, [*_said(scene_ids), {"$sort": {"time": -1, "_id": -1}}])
+    return [(doc, verdicts) for doc in found if (verdicts := _who_said(doc.pop("verdicts")))]
+
+
+def _verdict_counts(scene_ids: list) -> Plan[list[tuple[Cluster, int]]]:
+    """What was said of the clusters of these scenes, and of how many: clusters said alike
+    are counted together in the database (a window's clusters repeat a few verdicts many
+    times), a cluster a person corrected on its own (which correction is in force is
+    decided here)."""
+    corrected = {"$gt": [{"$size": {"$filter": {"input": "$verdicts", "cond": {
+        "$in": ["$$this._type", CORRECTIONS]}}}}, 0]}
+    found = yield Aggregate(CLUSTERS, [*_said(scene_ids), {"$group": {
+        "_id": {"$cond": [corrected, "$_id", "$verdicts"]},
+        "verdicts": {"$first": "$verdicts"}, "clusters": {"$sum": 1}}}])
+    return [(verdicts, doc["clusters"]) for doc in found
+            if (verdicts := _who_said(doc["verdicts"]))]
+
+
+def _said(scene_ids: list) -> list[dict]:
+    """The stages that select the clusters of these scenes someone classified or corrected,
+    with what each said (`verdicts`: a class given, or a correction whole)."""
+    return [
         {"$match": {"scene_id": {"$in": scene_ids}}},
         {"$project": {"scene_id": 1, "time": "$search.time", "verdicts": {"$map": {
             "input": {"$filter": {"input": {"$ifNull": ["$annotations", []]}, "cond": {
@@ -216,21 +251,20 @@ def _verdicts(scene_ids: list) -> Plan[list[tuple[dict, Cluster]]]:
                 "type": "$$this._type", "source": "$$this.source",
                 "class": {"$ifNull": ["$$this.class_name", "$$this.name"]}}]}}}}},
         {"$match": {"verdicts.0": {"$exists": True}}},
-        {"$sort": {"time": -1, "_id": -1}},
-    ])
-    out = []
-    for doc in found:
-        verdicts: Cluster = defaultdict(set)
-        said = doc.pop("verdicts")
-        corrections = [decode(v) for v in said if "_type" in v]
-        if isinstance(decided := verdict(corrections), Relabel):
-            verdicts[PEOPLE].add(decided.class_name)
-        for given in said:
-            if "_type" in given or given.get("class") is None:
-                continue
-            who = GROUND_TRUTH if given.get("type") == name_of(GroundTruth) else (
-                given.get("source") or NO_SOURCE)
-            verdicts[who].add(str(given["class"]))
-        if verdicts:
-            out.append((doc, dict(verdicts)))
-    return out
+    ]
+
+
+def _who_said(said: list[dict]) -> Cluster:
+    """Who (an annotator, the ground truth, people) gave which classes, of a cluster's
+    verdicts."""
+    verdicts: Cluster = defaultdict(set)
+    corrections = [decode(v) for v in said if "_type" in v]
+    if corrections and isinstance(decided := verdict(corrections), Relabel):
+        verdicts[PEOPLE].add(decided.class_name)
+    for given in said:
+        if "_type" in given or given.get("class") is None:
+            continue
+        who = GROUND_TRUTH if given.get("type") == name_of(GroundTruth) else (
+            given.get("source") or NO_SOURCE)
+        verdicts[who].add(str(given["class"]))
+    return dict(verdicts)

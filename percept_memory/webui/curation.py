@@ -6,6 +6,8 @@
     POST /api/clusters/{id}/merge     {"other": "<cluster id>", "author": "ana"}: one object
     POST /api/objects/{id}/relabel    {"label": "mug", "author": "ana"}: its latest observation
     POST /api/objects/{id}/merge      {"other": "<object id>", "author": "ana"}
+    POST /api/objects/{id}/split      {"clusters": ["<cluster id>", ...], "author": "ana"}:
+                                      these observations of the object are another object
     GET  /api/corrections             the audit: every correction, newest first, and counts
 
 Writes need the write token when one is configured; the guard (guard.py) refuses them from
@@ -59,6 +61,11 @@ class Merging(BaseModel):
     author: str = Field(description="who corrects (1-100 characters)")
 
 
+class Splitting(BaseModel):
+    clusters: list[Id] = Field(description="the object's observations that show another object")
+    author: str = Field(description="who corrects (1-100 characters)")
+
+
 class Undoing(BaseModel):
     author: str = Field(description="who takes the correction back (1-100 characters)")
 
@@ -71,13 +78,16 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         authorise(request, settings.token)
 
     async def corrected(make, *args) -> dict[str, Any]:
+        made = await correcting(make, *args)
+        return {"correction": described(made)}
+
+    async def correcting(make, *args):
         try:
-            made = await run_in_threadpool(make, store, *args)
+            return await run_in_threadpool(make, store, *args)
         except curation.NotCorrectable as error:
             field = BODY_FIELDS.get(error.field, error.field)
             raise ApiError(422, "the correction is not valid", [
                 {"path": f"body.{field}" if field else "", "message": str(error)}]) from None
-        return {"correction": described(made)}
 
     def latest_observations(*object_ids) -> list:
         """The latest cluster of each object: a correction of an object is one of what was
@@ -121,6 +131,16 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         mine, other = await run_in_threadpool(latest_observations, object_id, body.other)
         return await corrected(curation.merge, mine, other, body.author)
 
+    @router.post("/api/objects/{object_id}/split",
+                 summary="Say some observations of an object show another object", **write)
+    async def split_object(object_id: Id, body: Splitting) -> dict[str, Any]:
+        """Each observation in `clusters` is kept apart from the object's earliest other one:
+        identity never takes the two for one object (the map's belief is rebuilt by the
+        memory pipeline). One correction per observation, each stored on the later cluster
+        of its pair and undone there."""
+        made = await correcting(curation.split, object_id, body.clusters, body.author)
+        return {"corrections": [described(m) for m in made]}
+
     @router.post("/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
                  summary="Take a correction back", **write)
     async def undo_correction(cluster_id: Id, correction_id: Id,
@@ -139,8 +159,8 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
     def audit(author: Annotated[str | None, Query(max_length=100)] = None,
               limit: Annotated[int, Query(ge=1, le=curation.AUDIT_LIMIT)] = AUDIT_SHOWN,
               ) -> dict[str, Any]:
-        """Who corrected what and when: kind (relabel, reject, undo), label or reason, the
-        cluster, scene and object, and who undid it; `counts` of each kind."""
+        """Who corrected what and when: kind (relabel, reject, merge, split, undo), label or
+        reason, the cluster, scene and object, and who undid it; `counts` of each kind."""
         rows = curation.audit(store, limit, author)
         return {"counts": curation.counts(store), "corrections": [as_json(r) for r in rows]}
 

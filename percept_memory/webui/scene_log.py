@@ -5,7 +5,8 @@ reads one field of the scene document that an index pairs with (timestamp, _id)
 `types` (memory/documents.py: scene_summary). The cursor `before` is the (timestamp, id) of the
 last scene shown, so paging stays exact, filtered or not, while scenes arrive. Each value a
 filter offers shows how many scenes it would select with the other filters (facets.py), and a
-histogram of the selected scenes over time sets the time range by its bars (histogram.py).
+histogram of the selected scenes over time sets the time range by its bars (histogram.py):
+a bar's link, or a drag across bars (static/brush.js).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from percept_memory.queries.model import canonical_type
 
 from .facets import facet_counts, shown
 from .histogram import Bar, Histogram, scene_histogram
-from .html import LIST_FIELDS, PageError, nanoseconds, page
+from .html import LIST_FIELDS, SCRIPT_CSP, PageError, nanoseconds, page
 
 SCENES_PER_PAGE = 20
 CHOICES = {"robot": "robot", "region": "summary.regions", "annotator": "summary.annotators",
@@ -69,7 +70,7 @@ def routes(store: MemoryStore) -> APIRouter:
             "scenes": scenes, "choices": choices, "older": older, "filters": filters,
             "given": given, "counts": counts, "shown": shown, "histogram": histogram,
             "bar_links": histogram and [_link(given, bar) for bar in histogram.bars],
-        })
+        }, policy=SCRIPT_CSP)  # the histogram's brushing (static/brush.js)
 
     return router
 

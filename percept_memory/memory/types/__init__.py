@@ -31,15 +31,16 @@ from .base import (
     stored_type,
     timestamp_from_datetime,
 )
-from .curation import Correction, Rejection, Relabel, SameObject, Undo
+from .curation import Correction, DifferentObject, Rejection, Relabel, SameObject, Undo
 from .hypotheses import Hypothesis, ImageROI, PointCluster, SpatialVolume
 from .raw import Box, CameraInfo, Image, NDArray, PointCloud, Pose, Quaternion, Transform, Vec3
 from .scene import Cluster, Scene
 
 __all__ = [
     "Annotation", "Barcode", "Box", "CameraInfo", "Classification", "Cluster", "ColorHistogram",
-    "Correction", "Detection", "FeatureVector", "Geometry", "GroundTruth", "Hypothesis", "Id",
-    "Identifiable", "Image", "ImageROI", "Location", "LogLine", "Logo", "Model", "NDArray",
+    "Correction", "Detection", "DifferentObject", "FeatureVector", "Geometry", "GroundTruth",
+    "Hypothesis", "Id", "Identifiable", "Image", "ImageROI", "Location", "LogLine", "Logo",
+    "Model", "NDArray",
     "PointCloud", "PointCluster", "Pose", "Product", "Quaternion", "Rejection", "Relabel",
     "Relation", "SameObject", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text",
     "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "WebLookup",

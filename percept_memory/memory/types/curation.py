@@ -6,6 +6,8 @@ changes), carrying who made it and when. The latest correction in force decides:
 - `Rejection`: this detection is wrong, there is no object here;
 - `SameObject`: the object seen here is the one seen in another, earlier cluster (two
   objects the memory holds apart are one: they are merged);
+- `DifferentObject`: the object seen here is not the one seen in another, earlier cluster (one
+  object the memory made of two is split: identity keeps the two clusters apart);
 - `Undo`: takes back an earlier correction; itself recorded, so the audit keeps both.
 
 Which correction is in force depends on the set of annotations, never on the order they were
@@ -64,9 +66,19 @@ class SameObject(Correction):
     other: Id
 
 
+@stored_type("pm.annotation.DifferentObject")
+class DifferentObject(Correction):
+    """A person says the object seen here is not the one seen in the cluster `apart_from`, an
+    earlier observation of the same map: identity never takes this cluster for the object
+    that cluster is, nor merges the two objects, when it reaches this one."""
+
+    apart_from: Id
+
+
 @stored_type("pm.annotation.Undo")
 class Undo(Correction):
-    """A person takes back the correction `undoes` (a Relabel, a Rejection, a SameObject)."""
+    """A person takes back the correction `undoes` (a Relabel, a Rejection, a SameObject, a
+    DifferentObject)."""
 
     undoes: Id
 
@@ -95,9 +107,14 @@ def same_as(annotations: Iterable) -> list:
     return sorted({a.other for a in in_force(annotations) if isinstance(a, SameObject)})
 
 
-def identity_said(annotations: Iterable) -> tuple[bool, list]:
+def apart_from(annotations: Iterable) -> list:
+    """The earlier clusters a person said show another object than these annotations' cluster."""
+    return sorted({a.apart_from for a in in_force(annotations) if isinstance(a, DifferentObject)})
+
+
+def identity_said(annotations: Iterable) -> tuple[bool, list, list]:
     """What people said that identity decides on: whether the cluster is no object at all,
-    and which earlier clusters show its object. A correction that changes it rebuilds the
-    map's belief (memory/curation.py)."""
+    which earlier clusters show its object and which show another. A correction that changes
+    it rebuilds the map's belief (memory/curation.py)."""
     annotations = list(annotations)
-    return rejected(annotations), same_as(annotations)
+    return rejected(annotations), same_as(annotations), apart_from(annotations)

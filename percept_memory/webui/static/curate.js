@@ -28,7 +28,10 @@ async function send(event) {
   event.preventDefault();
   const form = event.currentTarget;
   const status = form.querySelector("[role=status]");
-  const body = Object.fromEntries(new FormData(form));
+  const fields = new FormData(form);
+  const body = Object.fromEntries(fields);
+  const list = form.dataset.list;  // a field of many values (checkboxes): sent as a list
+  if (list) body[list] = fields.getAll(list);
   body.author = author.value.trim();
   localStorage.setItem(AUTHOR, body.author);
   const headers = {"Content-Type": "application/json"};

@@ -208,11 +208,13 @@ class AsyncMemoryStore(StoreBase):
         return (await self._blobs_by_id([blob_id]))[blob_id]
 
     async def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
-        for blob_id, data in blobs.items():
-            if await self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
-                file_doc, chunks = docs.gridfs_documents(blob_id, data)
-                await self.chunks.insert_many(chunks, session=session)
-                await self.files.insert_one(file_doc, session=session)
+        if not blobs:
+            return
+        stored = self.files.find({"_id": {"$in": list(blobs)}}, {"_id": 1}, session=session)
+        files, chunks = docs.gridfs_writes(blobs, [doc["_id"] async for doc in stored])
+        if files:
+            await self.chunks.insert_many(chunks, session=session)
+            await self.files.insert_many(files, session=session)
 
     async def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
         return await self._blobs_by_id(docs.blob_ids(stored), session)

@@ -17,7 +17,14 @@ import bson
 from bson import ObjectId
 from bson.raw_bson import RawBSONDocument
 
-from percept_memory.converters import DecodeContext, EncodeContext, Unknown, decode, encode
+from percept_memory.converters import (
+    BLOB_KEY,
+    DecodeContext,
+    EncodeContext,
+    Unknown,
+    decode,
+    encode,
+)
 
 from . import search_keys
 from .errors import NotFound
@@ -338,8 +345,21 @@ def vocabulary_documents(terms: Iterable[str], labels: Iterable[str]) -> dict[st
 
 
 def blob_ids(docs: Iterable[Mapping]) -> list[str]:
-    """The blobs to fetch before decoding these documents."""
-    return sorted({blob for doc in docs for blob in doc.get(BLOBS_KEY, ())})
+    """The blobs to fetch before decoding these documents: those they refer to as read, so
+    that a document read without its pixels (a projection) fetches none of them."""
+    return sorted({blob for doc in docs for blob in _references(doc)})
+
+
+def _references(value) -> Iterable[str]:
+    if isinstance(value, Mapping):
+        if BLOB_KEY in value:
+            yield value[BLOB_KEY]
+        else:
+            for item in value.values():
+                yield from _references(item)
+    elif isinstance(value, list):
+        for item in value:
+            yield from _references(item)
 
 
 def _stored_fields(doc: Mapping) -> dict:
@@ -362,6 +382,19 @@ def decode_scene(
 
 
 GRIDFS_CHUNK_SIZE = 255 * 1024  # the GridFS default
+
+
+def gridfs_writes(blobs: Mapping[str, bytes], stored: Iterable[str]
+                  ) -> tuple[list[dict], list[dict]]:
+    """The `fs.files` and `fs.chunks` documents of the blobs not `stored` yet: one insert of
+    each for a whole write, however many crops it holds."""
+    files: list[dict] = []
+    chunks: list[dict] = []
+    for blob_id in sorted(blobs.keys() - set(stored)):
+        file_doc, its_chunks = gridfs_documents(blob_id, blobs[blob_id])
+        files.append(file_doc)
+        chunks += its_chunks
+    return files, chunks
 
 
 def gridfs_documents(blob_id: str, data: bytes) -> tuple[dict, list[dict]]:

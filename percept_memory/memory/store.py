@@ -445,11 +445,13 @@ class MemoryStore(StoreBase):
         return self._blobs_by_id(list(blob_ids))
 
     def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
-        for blob_id, data in blobs.items():
-            if self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
-                file_doc, chunks = docs.gridfs_documents(blob_id, data)
-                self.chunks.insert_many(chunks, session=session)
-                self.files.insert_one(file_doc, session=session)
+        if not blobs:
+            return
+        stored = self.files.find({"_id": {"$in": list(blobs)}}, {"_id": 1}, session=session)
+        files, chunks = docs.gridfs_writes(blobs, (doc["_id"] for doc in stored))
+        if files:
+            self.chunks.insert_many(chunks, session=session)
+            self.files.insert_many(files, session=session)
 
     def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
         return self._blobs_by_id(docs.blob_ids(stored), session)

@@ -97,18 +97,18 @@ def test_more_neighbours_asked_than_there_are_gives_them_all(space):
 
 
 def test_the_nearest_are_ranked_from_the_index_alone(space, store):
-    """Candidates are ranked by the coordinates in the cells' index, without reading a
+    """Candidates are ranked by the coordinates in the Morton key's index, without reading a
     document; only the k winners are read."""
     plans: list = []
     hits = QueryEngine(store, explain=plans).clusters(near=(0, 0, 0), k=5).items
     *ranking, reading = plans
     assert len(hits) == 5 and ranking and reading["op"] == "Find"
     for plan in ranking:
-        assert plan["indexes"] == ["cells_newest_xyz"] and "FETCH" not in plan["stages"], plan
+        assert plan["indexes"] == ["morton_xyz"] and "FETCH" not in plan["stages"], plan
 
 
 def test_a_box_is_counted_from_the_index_alone(space, store):
-    """The exact test is on the coordinates the cells' index holds: a box's count reads no
+    """The exact test is on the coordinates the Morton key's index holds: a box's count reads no
     document (a sphere's reads those inside its bounding box, for the distance)."""
     engine, by_id = space
     low, high = (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)
@@ -121,6 +121,6 @@ def test_a_box_is_counted_from_the_index_alone(space, store):
         total = QueryEngine(store, explain=plans).clusters(**volume, limit=0, count=True).total
         assert total == sum(map(inside, by_id.values())) > 0
         (plan,) = plans
-        assert plan["indexes"] == ["cells_newest_xyz"], plan
+        assert plan["indexes"] == ["morton_xyz"], plan
         if "box" in volume:
             assert "FETCH" not in plan["stages"], plan

@@ -510,7 +510,9 @@ def test_the_count_alone_reads_no_page(store, kitchen):
     {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00"},
     {"region": "table", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
     {"object": "000000000000000000000000"},
+    {"object": "000000000000000000000000", "after": "2024-03-05T06:00"},
     {"labelled": "Pringles"},
+    {"labelled": "Pringles", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
     {},
 ])
 def test_a_count_an_index_decides_is_read_from_its_keys(store, kitchen, query):

@@ -42,7 +42,7 @@ def a_scene(kitchen_rgb, clusters: int = 6, seed: int = 0) -> Scene:
 
 def snapshot(store: MemoryStore) -> dict:
     return {name: store.db[name].count_documents({})
-            for name in ("scenes", "clusters", "fs.files", "fs.chunks")}
+            for name in ("scenes", "clusters", "binaries", "fs.files", "fs.chunks")}
 
 
 def binaries(value):
@@ -89,14 +89,14 @@ def test_blobs_are_real_gridfs_files(store, kitchen_rgb):
 
 
 def test_crops_leave_the_cluster_documents_and_read_back(store, kitchen_rgb):
-    """Queries scan cluster documents: a crop is a GridFS file they refer to, loaded with the
-    cluster, and a read without pixels (a projection) fetches no blob at all."""
+    """Queries scan cluster documents: a crop is a document of `binaries` they refer to,
+    loaded with the cluster, and a read without pixels (a projection) fetches no blob."""
     scene = a_scene(kitchen_rgb, clusters=2, seed=5)
     store.put_scene(scene)
     doc = store.clusters.find_one({"_id": scene.clusters[0].id})
     (roi,) = [h for h in doc["hypotheses"] if h.get("crop")]
     crop_id = roi["crop"]["data"]["_blob"]
-    assert store.files.count_documents({"_id": crop_id}) == 1
+    assert store.binaries.count_documents({"_id": crop_id}) == 1
     assert max(map(len, binaries(doc))) <= store.gridfs_threshold  # no pixels
     assert crop_id in docs.blob_ids([doc])
     assert docs.blob_ids([store.clusters.find_one(
@@ -118,7 +118,7 @@ def test_a_write_stores_each_blob_once(store, kitchen_rgb):
     store.put_scenes(scenes[:1])
     store.put_scenes(scenes[1:])
     after = snapshot(store)
-    assert after["fs.files"] - before["fs.files"] == 1
+    assert after["binaries"] - before["binaries"] == 1
     assert store.get_scene(scenes[1].id) == scenes[1]
 
 
@@ -300,11 +300,12 @@ def test_robosherlock_annotations_we_do_not_know_survive_storage(store):
     ]
 
 
-def test_put_and_get_blob_by_content(store):
-    data = bytes(range(256)) * 2000
+@pytest.mark.parametrize("size, home", [(3000, "binaries"), (512_000, "fs.files")])
+def test_put_and_get_blob_by_content(store, size, home):
+    data = (bytes(range(256)) * 2000)[:size]
     blob_id = store.put_blob(data)
     assert store.put_blob(data) == blob_id
-    assert store.files.count_documents({"_id": blob_id}) == 1
+    assert store.db[home].count_documents({"_id": blob_id}) == 1
     assert store.get_blob(blob_id) == data
     with pytest.raises(NotFound, match="blob"):
         store.get_blob("sha256:00")

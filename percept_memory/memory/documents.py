@@ -28,7 +28,7 @@ from percept_memory.converters import (
 
 from . import search_keys
 from .errors import NotFound
-from .schema import LABELS, TERMS
+from .schema import BINARIES, GRIDFS_CHUNKS, GRIDFS_FILES, LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 from .types.curation import in_force
 
@@ -384,17 +384,30 @@ def decode_scene(
 GRIDFS_CHUNK_SIZE = 255 * 1024  # the GridFS default
 
 
-def gridfs_writes(blobs: Mapping[str, bytes], stored: Iterable[str]
-                  ) -> tuple[list[dict], list[dict]]:
-    """The `fs.files` and `fs.chunks` documents of the blobs not `stored` yet: one insert of
-    each for a whole write, however many crops it holds."""
-    files: list[dict] = []
-    chunks: list[dict] = []
+def blob_homes(blobs: Mapping[str, bytes]) -> dict[str, list[str]]:
+    """Where each blob is kept: a document of its own in `binaries` (crops, masks, most
+    images: one index entry, read by id), or chunked as a GridFS file above a chunk's size."""
+    homes: dict[str, list[str]] = {}
+    for blob_id, data in blobs.items():
+        homes.setdefault(BINARIES if len(data) <= GRIDFS_CHUNK_SIZE else GRIDFS_FILES,
+                         []).append(blob_id)
+    return homes
+
+
+def blob_writes(blobs: Mapping[str, bytes], stored: Iterable[str]) -> dict[str, list[dict]]:
+    """The documents to insert, per collection in the order to insert them, for the blobs not
+    `stored` yet (content ids: a blob stored once is never written again): one insert per
+    collection for a whole write, however many crops it holds."""
+    writes: dict[str, list[dict]] = {BINARIES: [], GRIDFS_CHUNKS: [], GRIDFS_FILES: []}
     for blob_id in sorted(blobs.keys() - set(stored)):
-        file_doc, its_chunks = gridfs_documents(blob_id, blobs[blob_id])
-        files.append(file_doc)
-        chunks += its_chunks
-    return files, chunks
+        data = blobs[blob_id]
+        if len(data) <= GRIDFS_CHUNK_SIZE:
+            writes[BINARIES].append({"_id": blob_id, "data": data})
+        else:  # a GridFS file is complete once its `fs.files` document is there
+            file_doc, chunks = gridfs_documents(blob_id, data)
+            writes[GRIDFS_CHUNKS] += chunks
+            writes[GRIDFS_FILES].append(file_doc)
+    return {name: documents for name, documents in writes.items() if documents}
 
 
 def gridfs_documents(blob_id: str, data: bytes) -> tuple[dict, list[dict]]:

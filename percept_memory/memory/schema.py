@@ -25,7 +25,8 @@ LABELS = "labels"  # labels of several words, by their words (objects by any wor
 CATALOGUE = "catalogue"  # the partial models of the long-term catalogue (memory/catalogue/)
 CATALOGUE_TRACKS = "catalogue_tracks"  # per object, the partial model its views go to now
 CATALOGUE_HISTORY = "catalogue_history"  # the catalogue's entries that merged or split, when
-GRIDFS_FILES = "fs.files"
+BINARIES = "binaries"  # content id -> bytes: the binaries too big for the documents queries read
+GRIDFS_FILES = "fs.files"  # and those too big for one document of their own
 GRIDFS_CHUNKS = "fs.chunks"
 
 
@@ -142,7 +143,7 @@ def field_index(path: str) -> IndexModel:
                    name=f"{FIELD_INDEX_PREFIX}{path}")
 
 COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, OUTBOX, MAPS, JOBS, LOOKUP_CACHE, TYPES,
-                       TERMS, LABELS, GRIDFS_FILES)
+                       TERMS, LABELS, BINARIES, GRIDFS_FILES)
 
 
 def type_string(annotation: Any) -> str:

@@ -132,30 +132,33 @@ def morton_ranges(low: Iterable[float], high: Iterable[float],
     [low, high]: octree nodes inside the box are whole ranges, those across its border are
     split while the budget allows and taken whole after (the exact test drops the extra)."""
     lo, hi = [*map(grid, low)], [*map(grid, high)]
+    # the smallest node holding the whole box: where the steps of its corners part
+    level = max((a ^ b).bit_length() for a, b in zip(lo, hi, strict=True))
     ranges: list[tuple[int, int]] = []
-    across = [(0, 0, 0)]  # corners of the nodes across the border, at `level`
-    for level in range(MORTON_BITS, 0, -1):
+    across = [tuple(a >> level << level for a in lo)]  # nodes of side 2**level
+    while level:
         side = 1 << (level - 1)
         whole, split = [], []
-        for corner in across:
-            for child in _children(corner, side):
-                inner = [(c, c + side - 1) for c in child]
-                if any(b < lo[a] or a_ > hi[a] for a, (a_, b) in enumerate(inner)):
+        for x, y, z in across:
+            for child in ((x, y, z), (x + side, y, z), (x, y + side, z), (x + side, y + side, z),
+                          (x, y, z + side), (x + side, y, z + side), (x, y + side, z + side),
+                          (x + side, y + side, z + side)):
+                if _apart(child, side, lo, hi):
                     continue
-                inside = all(lo[a] <= a_ and b <= hi[a] for a, (a_, b) in enumerate(inner))
-                (whole if inside or side == 1 else split).append(child)
+                (whole if side == 1 or _within(child, side, lo, hi) else split).append(child)
         if len(ranges) + len(whole) + len(split) > max_ranges:
-            break
+            return _merged(ranges + [_node_range(c, 2 * side) for c in across])
         ranges += [_node_range(c, side) for c in whole]
-        across = split
-    else:
-        return _merged(ranges)
-    return _merged(ranges + [_node_range(c, 2 * side) for c in across])
+        across, level = split, level - 1
+    return _merged(ranges + [_node_range(c, 1) for c in across])
 
 
-def _children(corner: tuple[int, int, int], side: int):
-    x, y, z = corner
-    return [(x + dx, y + dy, z + dz) for dz in (0, side) for dy in (0, side) for dx in (0, side)]
+def _apart(corner, side: int, lo: list[int], hi: list[int]) -> bool:
+    return any(c + side <= a or c > b for c, a, b in zip(corner, lo, hi, strict=True))
+
+
+def _within(corner, side: int, lo: list[int], hi: list[int]) -> bool:
+    return all(a <= c and c + side - 1 <= b for c, a, b in zip(corner, lo, hi, strict=True))
 
 
 def _node_range(corner: tuple[int, int, int], side: int) -> tuple[int, int]:

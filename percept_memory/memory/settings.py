@@ -55,8 +55,8 @@ class Settings(BaseSettings):
     gridfs_threshold: int = Field(
         default=2048, ge=1024,
         description="PMEM_GRIDFS_THRESHOLD: binary values above this many bytes (crops, "
-        "images, clouds) go to GridFS, out of the documents queries read; smaller ones "
-        "(feature vectors) stay inline",
+        "images, clouds) leave the documents queries read, for `binaries` (GridFS above "
+        "255 kB); smaller ones (feature vectors) stay inline",
     )
     token: str | None = Field(
         default=None, min_length=1,

@@ -23,7 +23,7 @@ at the end.
 
 Usage: python bench/vs_fiftyone.py [--count 100000] [--reps 50] [--export 10000]
        [--fiftyone-python PATH]   (default: this Python; e.g. a venv with fiftyone==1.22.1)
-       [--gridfs-threshold BYTES] (ours: binaries larger go to GridFS, out of the clusters)
+       [--gridfs-threshold BYTES] (ours: binaries larger leave the cluster documents)
 """
 
 from __future__ import annotations
@@ -275,8 +275,8 @@ def main() -> None:
     parser.add_argument("--export", type=int, default=10_000)
     parser.add_argument("--fiftyone-python", default=sys.executable)
     parser.add_argument("--gridfs-threshold", type=int, default=Settings().gridfs_threshold,
-                        help="ours: binaries above this many bytes go to GridFS, out of the "
-                             "cluster documents (1024: every crop)")
+                        help="ours: binaries above this many bytes leave the cluster "
+                             "documents (the default, 2048: every crop)")
     args = parser.parse_args()
     skipped = fiftyone_missing(args.fiftyone_python)
     if skipped:

@@ -318,7 +318,7 @@ def test_an_image_given_as_a_file_is_stored_as_that_file_and_reads_back_exactly(
     scene["images"] = {"color": {fmt: b64(file), "encoding": "bgr8"}}
     ids = IngestService(store).ingest(scene)
     stored = store.scenes.find_one({"_id": ids.scene_id})["images"]["color"]
-    assert bytes(stored["data"]) == file  # not decoded and encoded again
+    assert store.get_blob(stored["data"]["_blob"]) == file  # not decoded and encoded again
     read = store.get_scene(ids.scene_id).images["color"]
     assert np.array_equal(read.data, cv2.imdecode(np.frombuffer(file, np.uint8),
                                                   cv2.IMREAD_UNCHANGED))

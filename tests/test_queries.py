@@ -19,7 +19,16 @@ from percept_memory.ingest.service import IngestService
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
-from percept_memory.memory.types import Cluster, Location, Logo, Scene, Text
+from percept_memory.memory.types import (
+    Classification,
+    Cluster,
+    Detection,
+    Location,
+    Logo,
+    Scene,
+    Text,
+)
+from percept_memory.memory.types.curation import Undo
 from percept_memory.queries.compile import cluster_filter
 from percept_memory.queries.engine import AsyncQueryEngine, QueryEngine
 from percept_memory.queries.model import ClusterQuery, annotation_field
@@ -450,6 +459,31 @@ def test_a_predicate_without_an_index_still_answers_narrowed_by_the_others(store
                for plan in plans)
 
 
+def test_a_label_asked_exactly_is_looked_up_by_label(store, kitchen):
+    """classification:class_name=X needs no field index: the labels' index narrows and the
+    annotation decides (its exact spelling, its type). A cluster whose label an Undo took out
+    of its labels is still found: it is among the corrected clusters, indexed apart."""
+    store.drop_field_index("class_name")
+    scene = Scene(timestamp=HOUR, robot="label-probe", clusters=[
+        Cluster(annotations=[Classification(class_name="Tea pot")]),
+        Cluster(annotations=[Classification(class_name="tea_pot")]),
+        Cluster(annotations=[Detection(name="Tea pot")]),
+        Cluster(annotations=[Classification(class_name="Tea pot")])])
+    store.put_scene(scene)
+    undone = scene.clusters[3]
+    store.add_annotation(undone.id, Undo(undoes=undone.annotations[0].id, author="ann", time=1))
+    assert "tea pot" not in store.clusters.find_one({"_id": undone.id})["search"]["labels"]
+    plans: list = []
+    engine = QueryEngine(store, explain=plans)
+    where = "classification:class_name=Tea pot"
+    hits = every_page(engine, where=where, limit=500)
+    assert {h.id for h in hits} == {scene.clusters[0].id, undone.id}
+    assert engine.clusters(where=where, limit=0, count=True).total == 2
+    for plan in plans:
+        assert "COLLSCAN" not in plan["stages"], plan
+        assert set(plan["indexes"]) == {"labels_newest", "corrected"}, plan
+
+
 @pytest.mark.parametrize("field, message", [
     ("colorhistogram:histogram", "not a scalar field"),
     ("classification:nope", "has no field 'nope'"),
@@ -476,7 +510,9 @@ def test_the_count_alone_reads_no_page(store, kitchen):
     {"after": "2024-03-05T06:00", "before": "2024-03-05T09:00"},
     {"region": "table", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
     {"object": "000000000000000000000000"},
+    {"object": "000000000000000000000000", "after": "2024-03-05T06:00"},
     {"labelled": "Pringles"},
+    {"labelled": "Pringles", "after": "2024-03-05T06:00", "before": "2024-03-06T09:00"},
     {},
 ])
 def test_a_count_an_index_decides_is_read_from_its_keys(store, kitchen, query):

@@ -4,6 +4,7 @@ points themselves so that boundaries are hit exactly."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from percept_memory.memory.search_keys import morton, morton_ranges
 from percept_memory.memory.types import Cluster, Location, Scene
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import Box, Sphere
@@ -91,24 +93,40 @@ def test_nearest_are_exact(space, a, offset, k):
     assert all(math.sqrt(squared_distance_py(point, by_id[h.id])) == h.distance for h in hits)
 
 
+COORDINATE = st.floats(-1e7, 1e7)
+
+
+@settings(max_examples=300, deadline=None)
+@given(low=st.tuples(COORDINATE, COORDINATE, COORDINATE),
+       size=st.tuples(*[st.sampled_from([0.0, 1e-3, 0.07, 1.0, 40.0, 3e5])] * 3),
+       at=st.tuples(*[st.floats(0, 1)] * 3), budget=st.integers(1, 40))
+def test_the_key_ranges_of_a_box_hold_every_point_in_it(low, size, at, budget):
+    high = tuple(a + s for a, s in zip(low, size, strict=True))
+    point = tuple(min(a + f * s, b) for a, f, s, b in zip(low, at, size, high, strict=True))
+    ranges = morton_ranges(low, high, budget)
+    assert len(ranges) <= budget
+    assert any(first <= morton(point) <= last for first, last in ranges)
+    assert all(last < first for (_, last), (first, _) in itertools.pairwise(ranges))
+
+
 def test_more_neighbours_asked_than_there_are_gives_them_all(space):
     engine, by_id = space
     assert len(engine.clusters(near=(0, 0, 0), k=1000).items) == len(by_id)
 
 
 def test_the_nearest_are_ranked_from_the_index_alone(space, store):
-    """Candidates are ranked by the coordinates in the cells' index, without reading a
+    """Candidates are ranked by the coordinates in the Morton key's index, without reading a
     document; only the k winners are read."""
     plans: list = []
     hits = QueryEngine(store, explain=plans).clusters(near=(0, 0, 0), k=5).items
     *ranking, reading = plans
     assert len(hits) == 5 and ranking and reading["op"] == "Find"
     for plan in ranking:
-        assert plan["indexes"] == ["cells_newest_xyz"] and "FETCH" not in plan["stages"], plan
+        assert plan["indexes"] == ["morton_xyz"] and "FETCH" not in plan["stages"], plan
 
 
 def test_a_box_is_counted_from_the_index_alone(space, store):
-    """The exact test is on the coordinates the cells' index holds: a box's count reads no
+    """The exact test is on the coordinates the Morton key's index holds: a box's count reads no
     document (a sphere's reads those inside its bounding box, for the distance)."""
     engine, by_id = space
     low, high = (-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)
@@ -121,6 +139,6 @@ def test_a_box_is_counted_from_the_index_alone(space, store):
         total = QueryEngine(store, explain=plans).clusters(**volume, limit=0, count=True).total
         assert total == sum(map(inside, by_id.values())) > 0
         (plan,) = plans
-        assert plan["indexes"] == ["cells_newest_xyz"], plan
+        assert plan["indexes"] == ["morton_xyz"], plan
         if "box" in volume:
             assert "FETCH" not in plan["stages"], plan

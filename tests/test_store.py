@@ -22,6 +22,7 @@ from percept_memory.memory.types import (
     Cluster,
     FeatureVector,
     Image,
+    ImageROI,
     Product,
     Scene,
     Shape,
@@ -41,7 +42,15 @@ def a_scene(kitchen_rgb, clusters: int = 6, seed: int = 0) -> Scene:
 
 def snapshot(store: MemoryStore) -> dict:
     return {name: store.db[name].count_documents({})
-            for name in ("scenes", "clusters", "fs.files", "fs.chunks")}
+            for name in ("scenes", "clusters", "binaries", "fs.files", "fs.chunks")}
+
+
+def binaries(value):
+    if isinstance(value, bytes):
+        yield value
+    for item in value.values() if isinstance(value, dict) else \
+            value if isinstance(value, list) else ():
+        yield from binaries(item)
 
 
 def test_a_stored_scene_reads_back_equal(store, kitchen_rgb):
@@ -77,6 +86,40 @@ def test_blobs_are_real_gridfs_files(store, kitchen_rgb):
     png = GridFSBucket(store.db).open_download_stream(blob_id).read()
     assert png.startswith(b"\x89PNG")
     assert store.get_blob(blob_id) == png
+
+
+def test_crops_leave_the_cluster_documents_and_read_back(store, kitchen_rgb):
+    """Queries scan cluster documents: a crop is a document of `binaries` they refer to,
+    loaded with the cluster, and a read without pixels (a projection) fetches no blob."""
+    scene = a_scene(kitchen_rgb, clusters=2, seed=5)
+    store.put_scene(scene)
+    doc = store.clusters.find_one({"_id": scene.clusters[0].id})
+    (roi,) = [h for h in doc["hypotheses"] if h.get("crop")]
+    crop_id = roi["crop"]["data"]["_blob"]
+    assert store.binaries.count_documents({"_id": crop_id}) == 1
+    assert max(map(len, binaries(doc))) <= store.gridfs_threshold  # no pixels
+    assert crop_id in docs.blob_ids([doc])
+    assert docs.blob_ids([store.clusters.find_one(
+        {"_id": scene.clusters[0].id}, {"hypotheses.crop": 0})]) == []
+    assert store.get_cluster(scene.clusters[0].id) == scene.clusters[0]
+    before = snapshot(store)
+    twin = scene.model_copy(deep=True)  # the same scene posted again
+    assert not store.put_scene(twin).created
+    assert snapshot(store) == before
+
+
+def test_a_write_stores_each_blob_once(store, kitchen_rgb):
+    """Clusters of a write, and of later writes, showing the same crop share one blob."""
+    crop = Image(data=kitchen_rgb[:64, :64].copy(), encoding="bgr8")
+    scenes = [Scene(timestamp=next(_clock), clusters=[
+        Cluster(hypotheses=[ImageROI(box=(0, 0, 64, 64), crop=crop)])
+        for _ in range(3)]) for _ in range(2)]
+    before = snapshot(store)
+    store.put_scenes(scenes[:1])
+    store.put_scenes(scenes[1:])
+    after = snapshot(store)
+    assert after["binaries"] - before["binaries"] == 1
+    assert store.get_scene(scenes[1].id) == scenes[1]
 
 
 def test_arrays_over_16_mb_go_to_gridfs(store):
@@ -257,11 +300,12 @@ def test_robosherlock_annotations_we_do_not_know_survive_storage(store):
     ]
 
 
-def test_put_and_get_blob_by_content(store):
-    data = bytes(range(256)) * 2000
+@pytest.mark.parametrize("size, home", [(3000, "binaries"), (512_000, "fs.files")])
+def test_put_and_get_blob_by_content(store, size, home):
+    data = (bytes(range(256)) * 2000)[:size]
     blob_id = store.put_blob(data)
     assert store.put_blob(data) == blob_id
-    assert store.files.count_documents({"_id": blob_id}) == 1
+    assert store.db[home].count_documents({"_id": blob_id}) == 1
     assert store.get_blob(blob_id) == data
     with pytest.raises(NotFound, match="blob"):
         store.get_blob("sha256:00")
@@ -309,7 +353,7 @@ def test_prepare_drops_the_indexes_no_query_uses_any_more(store):
     store.prepare()
     present = set(store.clusters.index_information())
     assert not {"labels", "fields"} & present
-    assert {"field:brand", "terms_newest", "cells_newest_xyz"} <= present
+    assert {"field:brand", "terms_newest", "morton_xyz"} <= present
 
 
 # --- the async store -------------------------------------------------------------------

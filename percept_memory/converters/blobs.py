@@ -2,8 +2,9 @@
 
 The converter does no I/O. While encoding, every binary value above the threshold is replaced
 by a reference `{"_blob": <sha256>, "size": n}` and collected in `EncodeContext.blobs`; the
-store writes those to GridFS. While decoding, the store passes the blobs it fetched in
-`DecodeContext.blobs`. Blob ids are content hashes, so a retried write stores nothing twice.
+store keeps those apart from the documents (memory/documents.py: blob_homes). While decoding,
+the store passes the blobs it fetched in `DecodeContext.blobs`. Blob ids are content hashes,
+so a retried write stores nothing twice.
 """
 
 from __future__ import annotations

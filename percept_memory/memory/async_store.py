@@ -208,11 +208,11 @@ class AsyncMemoryStore(StoreBase):
         return (await self._blobs_by_id([blob_id]))[blob_id]
 
     async def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
-        for blob_id, data in blobs.items():
-            if await self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
-                file_doc, chunks = docs.gridfs_documents(blob_id, data)
-                await self.chunks.insert_many(chunks, session=session)
-                await self.files.insert_one(file_doc, session=session)
+        stored = [doc["_id"] for home, ids in docs.blob_homes(blobs).items()
+                  async for doc in self.db[home].find({"_id": {"$in": ids}}, {"_id": 1},
+                                                      session=session)]
+        for name, documents in docs.blob_writes(blobs, stored).items():
+            await self.db[name].insert_many(documents, session=session)
 
     async def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
         return await self._blobs_by_id(docs.blob_ids(stored), session)
@@ -220,8 +220,12 @@ class AsyncMemoryStore(StoreBase):
     async def _blobs_by_id(self, blob_ids: list[str], session=None) -> dict[str, bytes]:
         if not blob_ids:
             return {}
-        cursor = self.chunks.find({"files_id": {"$in": blob_ids}}, session=session)
-        return docs.joined_blobs(blob_ids, await cursor.to_list())
+        found = {doc["_id"]: doc["data"] async for doc in self.binaries.find(
+            {"_id": {"$in": blob_ids}}, session=session)}
+        if rest := [blob for blob in blob_ids if blob not in found]:
+            cursor = self.chunks.find({"files_id": {"$in": rest}}, session=session)
+            found |= docs.joined_blobs(rest, await cursor.to_list())
+        return found
 
     async def _insert(self, written: docs.Documents, session) -> None:
         await self._put_blobs(written.blobs, session)

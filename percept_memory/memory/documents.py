@@ -17,11 +17,18 @@ import bson
 from bson import ObjectId
 from bson.raw_bson import RawBSONDocument
 
-from percept_memory.converters import DecodeContext, EncodeContext, Unknown, decode, encode
+from percept_memory.converters import (
+    BLOB_KEY,
+    DecodeContext,
+    EncodeContext,
+    Unknown,
+    decode,
+    encode,
+)
 
 from . import search_keys
 from .errors import NotFound
-from .schema import LABELS, TERMS
+from .schema import BINARIES, GRIDFS_CHUNKS, GRIDFS_FILES, LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 from .types.curation import in_force
 
@@ -338,8 +345,21 @@ def vocabulary_documents(terms: Iterable[str], labels: Iterable[str]) -> dict[st
 
 
 def blob_ids(docs: Iterable[Mapping]) -> list[str]:
-    """The blobs to fetch before decoding these documents."""
-    return sorted({blob for doc in docs for blob in doc.get(BLOBS_KEY, ())})
+    """The blobs to fetch before decoding these documents: those they refer to as read, so
+    that a document read without its pixels (a projection) fetches none of them."""
+    return sorted({blob for doc in docs for blob in _references(doc)})
+
+
+def _references(value) -> Iterable[str]:
+    if isinstance(value, Mapping):
+        if BLOB_KEY in value:
+            yield value[BLOB_KEY]
+        else:
+            for item in value.values():
+                yield from _references(item)
+    elif isinstance(value, list):
+        for item in value:
+            yield from _references(item)
 
 
 def _stored_fields(doc: Mapping) -> dict:
@@ -362,6 +382,32 @@ def decode_scene(
 
 
 GRIDFS_CHUNK_SIZE = 255 * 1024  # the GridFS default
+
+
+def blob_homes(blobs: Mapping[str, bytes]) -> dict[str, list[str]]:
+    """Where each blob is kept: a document of its own in `binaries` (crops, masks, most
+    images: one index entry, read by id), or chunked as a GridFS file above a chunk's size."""
+    homes: dict[str, list[str]] = {}
+    for blob_id, data in blobs.items():
+        homes.setdefault(BINARIES if len(data) <= GRIDFS_CHUNK_SIZE else GRIDFS_FILES,
+                         []).append(blob_id)
+    return homes
+
+
+def blob_writes(blobs: Mapping[str, bytes], stored: Iterable[str]) -> dict[str, list[dict]]:
+    """The documents to insert, per collection in the order to insert them, for the blobs not
+    `stored` yet (content ids: a blob stored once is never written again): one insert per
+    collection for a whole write, however many crops it holds."""
+    writes: dict[str, list[dict]] = {BINARIES: [], GRIDFS_CHUNKS: [], GRIDFS_FILES: []}
+    for blob_id in sorted(blobs.keys() - set(stored)):
+        data = blobs[blob_id]
+        if len(data) <= GRIDFS_CHUNK_SIZE:
+            writes[BINARIES].append({"_id": blob_id, "data": data})
+        else:  # a GridFS file is complete once its `fs.files` document is there
+            file_doc, chunks = gridfs_documents(blob_id, data)
+            writes[GRIDFS_CHUNKS] += chunks
+            writes[GRIDFS_FILES].append(file_doc)
+    return {name: documents for name, documents in writes.items() if documents}
 
 
 def gridfs_documents(blob_id: str, data: bytes) -> tuple[dict, list[dict]]:

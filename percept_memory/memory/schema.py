@@ -25,8 +25,12 @@ LABELS = "labels"  # labels of several words, by their words (objects by any wor
 CATALOGUE = "catalogue"  # the partial models of the long-term catalogue (memory/catalogue/)
 CATALOGUE_TRACKS = "catalogue_tracks"  # per object, the partial model its views go to now
 CATALOGUE_HISTORY = "catalogue_history"  # the catalogue's entries that merged or split, when
-GRIDFS_FILES = "fs.files"
+BINARIES = "binaries"  # content id -> bytes: the binaries too big for the documents queries read
+GRIDFS_FILES = "fs.files"  # and those too big for one document of their own
 GRIDFS_CHUNKS = "fs.chunks"
+
+
+CORRECTED = {"annotations.author": {"$exists": True}}  # the clusters people corrected
 
 
 def _newest(*keys: str, name: str, then: tuple[str, ...] = ()) -> IndexModel:
@@ -66,12 +70,13 @@ INDEXES: dict[str, list[IndexModel]] = {
         _newest("search.terms", name="terms_newest"),
         # a label exactly (any annotator's): counted from the index's keys alone (COUNT_SCAN)
         _newest("search.labels", name="labels_newest"),
-        # with the coordinates: the k nearest are ranked from the index alone (queries/space.py)
-        _newest("search.cells", name="cells_newest_xyz",
-                then=("search.x", "search.y", "search.z")),
+        # a position's Morton key with its coordinates: a box is decided and the k nearest
+        # are ranked from the index alone (queries/space.py)
+        IndexModel([(f"search.{key}", ASCENDING) for key in ("morton", "x", "y", "z", "time")]
+                   + [("_id", ASCENDING)], name="morton_xyz"),
         # the clusters people corrected, and only those: the audit (memory/curation.py)
         IndexModel([("annotations.author", ASCENDING)], name="corrected",
-                   partialFilterExpression={"annotations.author": {"$exists": True}}),
+                   partialFilterExpression=CORRECTED),
         # and the field indexes a user adds (store.add_field_index): `field:<path>`
     ],
     TERMS: [IndexModel([("grams", ASCENDING)], name="grams")],
@@ -119,12 +124,13 @@ INDEXES: dict[str, list[IndexModel]] = {
     GRIDFS_CHUNKS: [IndexModel([("files_id", ASCENDING), ("n", ASCENDING)], unique=True)],
 }
 
-RETIRED_INDEXES = {CLUSTERS: ("types_newest", "labels", "phash", "fields"),
+RETIRED_INDEXES = {CLUSTERS: ("types_newest", "labels", "phash", "fields", "cells_newest_xyz"),
                    OBJECTS: ("xy_state",)}
 """Indexes earlier versions created that no query uses any more: dropped by `prepare`.
 (`fields` indexed every scalar field of every annotation: ~75 entries, 2 kB a cluster of 20
 annotations, half of all its index bytes, for predicates on fields hardly anyone asks about;
-a field people do ask about gets an index of its own.)"""
+a field people do ask about gets an index of its own. `cells_newest_xyz` held 9 cell keys a
+position, 0.6 kB; the Morton key that replaced them is one.)"""
 
 FIELD_INDEX_PREFIX = "field:"
 
@@ -137,7 +143,7 @@ def field_index(path: str) -> IndexModel:
                    name=f"{FIELD_INDEX_PREFIX}{path}")
 
 COUNTED_COLLECTIONS = (SCENES, CLUSTERS, OBJECTS, EVENTS, OUTBOX, MAPS, JOBS, LOOKUP_CACHE, TYPES,
-                       TERMS, LABELS, GRIDFS_FILES)
+                       TERMS, LABELS, BINARIES, GRIDFS_FILES)
 
 
 def type_string(annotation: Any) -> str:

@@ -2,11 +2,11 @@
 
 - words: the terms of labels and texts (`search.terms`), and the trigrams that find a
   misspelt word's neighbours in the vocabulary (words without digits: codes are exact);
-- cells: 3D voxel keys at several sizes (`search.cells`). MongoDB's geo indexes are 2D
-  only, so a box, a sphere or the k nearest are found as the cells around them, then filtered
-  exactly by position; x, y and z are kept as scalars beside them (`search.x`...), so that the
-  index of the cells holds the coordinates too and ranks the k nearest without reading a
-  document;
+- place: one Morton (Z-order) key per position (`search.morton`). MongoDB's geo indexes are
+  2D only, so a box, a sphere or the k nearest are found as a few ranges of keys, then
+  filtered exactly by position; x, y and z are kept as scalars beside it (`search.x`...), so
+  that the key's index holds the coordinates too, decides a box and ranks the k nearest
+  without reading a document;
 Predicates on other annotation fields (classification:confidence>0.8) are looked up in the
 annotations themselves: narrowed by these keys, or by an index a user adds on that field
 (store.py: add_field_index).
@@ -77,63 +77,103 @@ def trigrams(word: str) -> list[str]:
     return sorted({padded[i:i + 3] for i in range(len(padded) - 2)})
 
 
-# --- cells --------------------------------------------------------------------------------
+# --- place: one Morton key ---------------------------------------------------------------
 
-CELL_SIZES = tuple(0.0625 * 4**level for level in range(8))  # 6.25 cm ... 1024 m: exact
-# powers of two, so a position's cell (floor of position / size) involves no rounding
-EVERYWHERE = "*"  # the one cell of every positioned cluster: the k-nearest search's last resort
-
-
-def cell(level: int, index: tuple[int, int, int]) -> str:
-    return f"{level}:{index[0]}:{index[1]}:{index[2]}"
+MORTON_BITS = 21  # per axis: 63 bits in all, a positive int64
+MORTON_UNIT = 0.0625  # metres: the grid a position is keyed on (an exact power of two)
+_HALF = 1 << (MORTON_BITS - 1)
+EVERYWHERE = (0, (1 << 3 * MORTON_BITS) - 1)  # the range of every key: the k nearest's last
+# resort
 
 
-MAX_INDEX = 2**53  # cells further out are the border cells: clamping keeps the order of
-# cells, so a volume's covering cells still hold every point in it, and 1e308 / 0.0625 (inf)
-# has a cell too
+def grid(v: float) -> int:
+    """A coordinate's step on the grid, 0 ... 2**21 - 1. Coordinates beyond +-65 km share the
+    border steps: clamping keeps the order, so a box's steps still hold every point in it."""
+    return math.floor(min(max(v / MORTON_UNIT, -_HALF), _HALF - 1)) + _HALF
 
 
-def cell_index(level: int, point: Iterable[float]) -> tuple[int, int, int]:
-    size = CELL_SIZES[level]
-    x, y, z = (math.floor(min(max(v / size, -MAX_INDEX), MAX_INDEX)) for v in point)
-    return x, y, z
+def _spread(n: int) -> int:
+    """The 21 bits of n, two zero bits after each (the standard bit-twiddling steps)."""
+    n = (n | n << 32) & 0x1F00000000FFFF
+    n = (n | n << 16) & 0x1F0000FF0000FF
+    n = (n | n << 8) & 0x100F00F00F00F00F
+    n = (n | n << 4) & 0x10C30C30C30C30C3
+    return (n | n << 2) & 0x1249249249249249
 
 
-def cells_of(position: Iterable[float] | None) -> list[str]:
-    """The cell keys of a position, one per level, plus EVERYWHERE; none without a position."""
-    if position is None:
-        return []
-    point = tuple(position)
-    return [cell(level, cell_index(level, point)) for level in range(len(CELL_SIZES))] + [
-        EVERYWHERE
-    ]
+def _interleaved(x: int, y: int, z: int) -> int:
+    return _spread(x) | _spread(y) << 1 | _spread(z) << 2
+
+
+def morton(point: Iterable[float]) -> int:
+    """The Morton (Z-order) key of a position: its grid steps' bits interleaved, so that
+    positions near each other mostly have keys near each other, and any box is a few key
+    ranges. One int64 an index holds instead of a cell per size (MongoDB's geo indexes are
+    2D only)."""
+    x, y, z = map(grid, point)
+    return _interleaved(x, y, z)
 
 
 AXES = ("x", "y", "z")
 
 
 def place(position: Iterable[float] | None) -> dict:
-    """The place keys of a position: the position itself, its cells and its coordinates as
-    scalars (an index can hold scalars, not the elements of an array beside the cells)."""
+    """The place keys of a position: the position itself, its Morton key and its coordinates
+    as scalars (the key's index holds them: a box is decided without reading a document)."""
     if position is None:
-        return {"position": None, "cells": []}
+        return {"position": None}
     point = [*position]
-    return {"position": point, "cells": cells_of(point), **dict(zip(AXES, point, strict=True))}
+    return {"position": point, "morton": morton(point), **dict(zip(AXES, point, strict=True))}
 
 
-def cells_covering(low: Iterable[float], high: Iterable[float], max_cells: int) -> list[str]:
-    """The cells of the finest level whose cells over the box [low, high] number at most
-    `max_cells` (every point of the box lies in one of them)."""
-    low, high = tuple(low), tuple(high)
-    for level in range(len(CELL_SIZES)):
-        first, last = cell_index(level, low), cell_index(level, high)
-        spans = [b - a + 1 for a, b in zip(first, last, strict=True)]
-        if math.prod(spans) <= max_cells:
-            return [cell(level, (x, y, z))
-                    for x in range(first[0], last[0] + 1)
-                    for y in range(first[1], last[1] + 1)
-                    for z in range(first[2], last[2] + 1)]
-    return [EVERYWHERE]
+def morton_ranges(low: Iterable[float], high: Iterable[float],
+                  max_ranges: int) -> list[tuple[int, int]]:
+    """At most `max_ranges` key ranges (first, last) holding every position of the box
+    [low, high]: octree nodes inside the box are whole ranges, those across its border are
+    split while the budget allows and taken whole after (the exact test drops the extra)."""
+    lo, hi = [*map(grid, low)], [*map(grid, high)]
+    # the smallest node holding the whole box: where the steps of its corners part
+    level = max((a ^ b).bit_length() for a, b in zip(lo, hi, strict=True))
+    ranges: list[tuple[int, int]] = []
+    across = [tuple(a >> level << level for a in lo)]  # nodes of side 2**level
+    while level:
+        side = 1 << (level - 1)
+        whole, split = [], []
+        for x, y, z in across:
+            for child in ((x, y, z), (x + side, y, z), (x, y + side, z), (x + side, y + side, z),
+                          (x, y, z + side), (x + side, y, z + side), (x, y + side, z + side),
+                          (x + side, y + side, z + side)):
+                if _apart(child, side, lo, hi):
+                    continue
+                (whole if side == 1 or _within(child, side, lo, hi) else split).append(child)
+        if len(ranges) + len(whole) + len(split) > max_ranges:
+            return _merged(ranges + [_node_range(c, 2 * side) for c in across])
+        ranges += [_node_range(c, side) for c in whole]
+        across, level = split, level - 1
+    return _merged(ranges + [_node_range(c, 1) for c in across])
+
+
+def _apart(corner, side: int, lo: list[int], hi: list[int]) -> bool:
+    return any(c + side <= a or c > b for c, a, b in zip(corner, lo, hi, strict=True))
+
+
+def _within(corner, side: int, lo: list[int], hi: list[int]) -> bool:
+    return all(a <= c and c + side - 1 <= b for c, a, b in zip(corner, lo, hi, strict=True))
+
+
+def _node_range(corner: tuple[int, int, int], side: int) -> tuple[int, int]:
+    first = _interleaved(*corner)
+    return first, first + side**3 - 1
+
+
+def _merged(ranges: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    out: list[tuple[int, int]] = []
+    for first, last in sorted(ranges):
+        if out and first <= out[-1][1] + 1:
+            out[-1] = (out[-1][0], max(out[-1][1], last))
+        else:
+            out.append((first, last))
+    return out
 
 
 # --- fields -------------------------------------------------------------------------------

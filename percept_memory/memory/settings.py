@@ -53,8 +53,10 @@ class Settings(BaseSettings):
         description="PMEM_MONGOD_OPLOG_MB: oplog size of the embedded mongod",
     )
     gridfs_threshold: int = Field(
-        default=128 * 1024, ge=1024,
-        description="PMEM_GRIDFS_THRESHOLD: binary values above this many bytes go to GridFS",
+        default=2048, ge=1024,
+        description="PMEM_GRIDFS_THRESHOLD: binary values above this many bytes (crops, "
+        "images, clouds) leave the documents queries read, for `binaries` (GridFS above "
+        "255 kB); smaller ones (feature vectors) stay inline",
     )
     token: str | None = Field(
         default=None, min_length=1,

@@ -42,6 +42,7 @@ from .errors import (
 )
 from .naming import renamed
 from .schema import (
+    BINARIES,
     CLUSTERS,
     COUNTED_COLLECTIONS,
     FIELD_INDEX_PREFIX,
@@ -92,6 +93,7 @@ class StoreBase:
         self.scenes = self.db[SCENES]
         self.clusters = self.db[CLUSTERS]
         self.types = self.db[TYPES]
+        self.binaries = self.db[BINARIES]
         self.files = self.db[GRIDFS_FILES]
         self.chunks = self.db[GRIDFS_CHUNKS]
         self.outbox = self.db[OUTBOX]
@@ -445,7 +447,8 @@ class MemoryStore(StoreBase):
     # --- blobs --------------------------------------------------------------------------
 
     def put_blob(self, data: bytes) -> str:
-        """Store bytes in GridFS under their content hash; returns the blob id."""
+        """Store bytes under their content hash (in `binaries`, or GridFS when large); returns
+        the blob id."""
         blob_id = content_id(data)
         self._transaction(lambda session: self._put_blobs({blob_id: data}, session))
         return blob_id
@@ -458,20 +461,26 @@ class MemoryStore(StoreBase):
         return self._blobs_by_id(list(blob_ids))
 
     def _put_blobs(self, blobs: dict[str, bytes], session) -> None:
-        for blob_id, data in blobs.items():
-            if self.files.find_one({"_id": blob_id}, {"_id": 1}, session=session) is None:
-                file_doc, chunks = docs.gridfs_documents(blob_id, data)
-                self.chunks.insert_many(chunks, session=session)
-                self.files.insert_one(file_doc, session=session)
+        stored = [doc["_id"] for home, ids in docs.blob_homes(blobs).items()
+                  for doc in self.db[home].find({"_id": {"$in": ids}}, {"_id": 1},
+                                                session=session)]
+        for name, documents in docs.blob_writes(blobs, stored).items():
+            self.db[name].insert_many(documents, session=session)
 
     def _blobs(self, stored: list[dict], session=None) -> dict[str, bytes]:
         return self._blobs_by_id(docs.blob_ids(stored), session)
 
     def _blobs_by_id(self, blob_ids: list[str], session=None) -> dict[str, bytes]:
+        """Blobs by id: from `binaries`, and those not there (large ones, or stored by an
+        older version) from GridFS."""
         if not blob_ids:
             return {}
-        chunks = self.chunks.find({"files_id": {"$in": blob_ids}}, session=session)
-        return docs.joined_blobs(blob_ids, chunks)
+        found = {doc["_id"]: doc["data"] for doc in self.binaries.find(
+            {"_id": {"$in": blob_ids}}, session=session)}
+        if rest := [blob for blob in blob_ids if blob not in found]:
+            found |= docs.joined_blobs(
+                rest, self.chunks.find({"files_id": {"$in": rest}}, session=session))
+        return found
 
     # --- writing ------------------------------------------------------------------------
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 from percept_memory.memory.schema import CLUSTERS
-from percept_memory.memory.search_keys import EVERYWHERE
 
 from . import meaning
 from .compile import (
@@ -74,17 +73,17 @@ def nearest(match: dict, point, k: int) -> Plan[list[ClusterHit]]:
     """The k matching clusters nearest to the point, nearest first: the cubes of cells around
     it grow until the k-th nearest candidate lies within the radius the cube covers, so no
     cluster outside the cube can be nearer. Candidates are ranked by the coordinates the
-    cells' index holds (without reading their documents when nothing else is asked), and
-    only the k found are read."""
+    Morton key's index holds (without reading their documents when nothing else is asked),
+    and only the k found are read."""
     for keys, covered in shells(point):
         ranked = yield Aggregate(CLUSTERS, [
-            {"$match": conjunction([match, {"search.cells": {"$in": keys}}])},
+            {"$match": conjunction([match, keys])},
             {"$project": {"time": "$search.time",
                           "d2": squared_distance(point, PLACE.expressions)}},
             {"$sort": {"d2": 1, "time": -1, "_id": -1}},
             {"$limit": k},
         ])
-        if keys == [EVERYWHERE] or (len(ranked) == k and
+        if math.isinf(covered) or (len(ranked) == k and
                                     math.sqrt(ranked[-1]["d2"]) < covered * (1 - 1e-9)):
             break
     if not ranked:

@@ -4,7 +4,7 @@ The one place where query values meet MongoDB syntax. Operators and field names 
 ours; user values (validated by model.py into strings, numbers, ids and times) only ever sit
 in value positions, where MongoDB never reads them as operators, and in aggregation
 expressions only inside $literal. Each condition is one an index answers (see schema.py):
-regions, robots, objects, time, terms, cells, field entries; what an index cannot decide
+regions, robots, objects, time, terms, Morton keys, field entries; what an index cannot decide
 exactly (a phrase, a sphere, several fields of one annotation) is checked on the candidates.
 """
 
@@ -18,14 +18,15 @@ from collections import defaultdict
 
 from bson import ObjectId
 
+from percept_memory.memory.schema import CORRECTED
 from percept_memory.memory.search_keys import AXES, normal_label
 
 from .model import ClusterFilter, ClusterQuery
 from .ops import QueryError
-from .space import Coordinates, cells_of_volume, inside
+from .space import Coordinates, inside, keys_of_volume
 from .text import Expansions, TextQuery, all_terms, phrase_pattern
 
-PLACE = Coordinates.scalars(*(f"search.{axis}" for axis in AXES))  # the cells' index holds them
+PLACE = Coordinates.scalars(*(f"search.{axis}" for axis in AXES))  # the Morton index holds them
 
 
 def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
@@ -40,8 +41,7 @@ def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
         clauses.append({"search.time": window})
     for volume in (f.box, f.sphere):
         if volume is not None:
-            clauses += [{"search.cells": {"$in": cells_of_volume(volume)}},
-                        inside(volume, PLACE)]
+            clauses += [keys_of_volume(volume), inside(volume, PLACE)]
     if text is not None:
         clauses.append({"search.terms": {"$in": all_terms(expansions or {})}})
         for phrase in text.phrases:
@@ -65,12 +65,16 @@ def time_window(after: int | None, before: int | None, at: int | None = None) ->
 def predicate_clauses(f: ClusterFilter) -> list[dict]:
     """Per annotation type, one $elemMatch over the annotations: all its predicates hold on
     the same annotation, and an index on a field of the type (store.add_field_index) gets
-    bounds on both the type and the field."""
+    bounds on both the type and the field. A label asked exactly is looked up in the labels'
+    index first (every cluster with that annotation has the label, unless people corrected
+    it: those few are in an index of their own), so it needs no field index to be fast."""
     by_type: dict[str, dict[str, dict]] = defaultdict(lambda: defaultdict(dict))
     for p in f.where:
         by_type[p.type][p.field][p.operator] = p.value
-    return [{"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
-            for type_name, fields in by_type.items()]
+    labels = sorted({p.label for p in f.where} - {None})
+    return [*({"$or": [{"search.labels": label}, CORRECTED]} for label in labels),
+            *({"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
+              for type_name, fields in by_type.items())]
 
 
 def conjunction(clauses: list[dict]) -> dict:

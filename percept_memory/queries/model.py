@@ -32,7 +32,7 @@ from pydantic import (
 
 from percept_memory.converters import class_for, name_of, registered_types
 from percept_memory.converters.registry import close_names, is_reserved
-from percept_memory.memory.search_keys import field_key, field_path, words
+from percept_memory.memory.search_keys import field_key, field_path, normal_label, words
 from percept_memory.memory.types import Annotation, Id, timestamp_from_datetime
 
 MAX_PAGE = 500
@@ -211,6 +211,16 @@ class Predicate(Strict):
     @property
     def operator(self) -> str:
         return OPERATORS[self.op]
+
+    @property
+    def label(self) -> str | None:
+        """The label this predicate asks for exactly, when its field is one the type's
+        labels come from (Annotation.label_fields): classification:class_name=Cereal asks
+        for "cereal", which every cluster it matches is found by (search.labels)."""
+        fields = getattr(class_for(self.type), "label_fields", ())
+        if self.operator != "$eq" or not isinstance(self.value, str) or self.field not in fields:
+            return None
+        return normal_label(self.value) or None
 
 
 class _TextValue(str):

@@ -1,6 +1,6 @@
-"""True 3D conditions, index-backed: the voxel cells around a volume select candidates by
-index (search.cells), the exact box or distance test keeps the right ones. MongoDB's geo
-indexes are 2D only; the thesis (6.6) could not use stored positions at all.
+"""True 3D conditions, index-backed: a few ranges of Morton keys around a volume select
+candidates by index (search.morton), the exact box or distance test keeps the right ones.
+MongoDB's geo indexes are 2D only; the thesis (6.6) could not use stored positions at all.
 
 The same conditions serve clusters (`search.position`) and events (`position`), so
 what-is-at a volume and changes in a volume mean exactly what a cluster search means.
@@ -12,25 +12,26 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from percept_memory.memory.search_keys import (
-    CELL_SIZES,
-    EVERYWHERE,
-    cell,
-    cell_index,
-    cells_covering,
-)
+from percept_memory.memory.search_keys import EVERYWHERE, morton_ranges
 
 from .model import Box, Sphere
 
 FLOAT_MAX = sys.float_info.max
-MAX_CELLS = 125  # cells one volume is looked up by (5 x 5 x 5 at the finest level that fits):
-# under MongoDB's 200 index points merged in sort order (internalQueryMaxScansToExplode), so
-# a page newest first merges the cells' index ranges instead of sorting every candidate
+MAX_RANGES = 16  # key ranges one volume is looked up by: a 1 m box is ~5 of them, holding 8
+# times its volume (index keys, tested on their x, y, z without reading documents); 32 would
+# hold 3.4 times its volume in ~14 ranges, but take ~4 times as long to work out in Python
+KEY = "search.morton"
 
 
-def cells_of_volume(volume: Box | Sphere) -> list[str]:
-    """The cells covering a box or a sphere's bounding box."""
-    return cells_covering(*corners(volume), MAX_CELLS)
+def keys_of_volume(volume: Box | Sphere) -> dict:
+    """The condition on the Morton key that holds every position in a box or in a sphere's
+    bounding box."""
+    return within(morton_ranges(*corners(volume), MAX_RANGES))
+
+
+def within(ranges: list[tuple[int, int]]) -> dict:
+    branches = [{KEY: {"$gte": first, "$lte": last}} for first, last in ranges]
+    return branches[0] if len(branches) == 1 else {"$or": branches}
 
 
 def corners(volume: Box | Sphere) -> tuple[tuple, tuple]:
@@ -104,19 +105,17 @@ def inside(volume: Box | Sphere, at: Coordinates) -> dict:
     return inside_box(volume, at) if isinstance(volume, Box) else inside_sphere(volume, at)
 
 
-def shells(point) -> list[tuple[list[str], float]]:
-    """For the k-nearest search: growing cubes of 3 x 3 x 3, then 5 x 5 x 5 cells around the
-    point at each level, each with the radius it is sure to cover (the distance from the point
-    to the cube's nearest face); last the cell of everything, which covers any radius."""
+NEAREST_REACH = tuple(0.25 * 4**step for step in range(8))  # 25 cm ... 4 km
+
+
+def shells(point) -> list[tuple[dict, float]]:
+    """For the k-nearest search: the key conditions of growing cubes around the point, each
+    with the radius it is sure to cover (its half side: every position that near is in it);
+    last every key, which covers any radius."""
     out = []
-    for level, size in enumerate(CELL_SIZES):
-        centre = cell_index(level, point)
-        for ring in (1, 2):
-            steps = range(-ring, ring + 1)
-            keys = [cell(level, (centre[0] + dx, centre[1] + dy, centre[2] + dz))
-                    for dx in steps for dy in steps for dz in steps]
-            covered = min(min(point[a] - (centre[a] - ring) * size,
-                              (centre[a] + ring + 1) * size - point[a]) for a in range(3))
-            out.append((keys, covered))
-    out.append(([EVERYWHERE], float("inf")))
+    for reach in NEAREST_REACH:
+        low = [max(v - reach, -FLOAT_MAX) for v in point]
+        high = [min(v + reach, FLOAT_MAX) for v in point]
+        out.append((within(morton_ranges(low, high, MAX_RANGES)), reach))
+    out.append((within([EVERYWHERE]), float("inf")))
     return out

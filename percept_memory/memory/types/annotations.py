@@ -38,9 +38,12 @@ class Annotation(Identifiable):
 
     source: str = ""
     naming_weight: ClassVar[float] = 0.0
+    label_fields: ClassVar[tuple[str, ...]] = ()
+    """The fields whose values are the type's labels, when it gives them unconditionally: an
+    exact predicate on one (classification:class_name=cereal) is then looked up by label."""
 
     def labels(self) -> list[str]:
-        return []
+        return [value for name in self.label_fields if (value := getattr(self, name))]
 
     def texts(self) -> list[str]:
         return []
@@ -84,15 +87,13 @@ class Classification(Annotation):
     """A classifier's verdict, with the per-class confidences when it gives them."""
 
     naming_weight: ClassVar[float] = 1.0
+    label_fields: ClassVar[tuple[str, ...]] = ("class_name",)
 
     class_name: str = Field(validation_alias=AliasChoices("class_name", "classname"))
     confidence: Probability | None = None
     classifier: str = ""
     feature: str = Field(default="", validation_alias=AliasChoices("feature", "featurename"))
     confidences: dict[str, Finite] = {}
-
-    def labels(self) -> list[str]:
-        return [self.class_name]
 
     def views(self) -> list[str]:
         return [self.class_name]
@@ -116,13 +117,11 @@ class Detection(Annotation):
     """A detector found a known object (by name) in the hypothesis."""
 
     naming_weight: ClassVar[float] = 1.0
+    label_fields: ClassVar[tuple[str, ...]] = ("name",)
 
     name: str
     confidence: Probability | None = None
     box: Box | None = None
-
-    def labels(self) -> list[str]:
-        return [self.name]
 
     def views(self) -> list[str]:
         return [self.name]
@@ -136,11 +135,10 @@ class Detection(Annotation):
 class Shape(Annotation):
     """A primitive shape: box, cylinder, sphere, flat, ..."""
 
+    label_fields: ClassVar[tuple[str, ...]] = ("shape",)
+
     shape: str
     confidence: Probability | None = None
-
-    def labels(self) -> list[str]:
-        return [self.shape]
 
     def views(self) -> list[str]:
         return [self.shape]
@@ -239,13 +237,11 @@ class Logo(Annotation):
     """A brand logo recognised on the object."""
 
     naming_weight: ClassVar[float] = 1.5
+    label_fields: ClassVar[tuple[str, ...]] = ("brand",)
 
     brand: str
     confidence: Probability | None = None
     box: Box | None = None
-
-    def labels(self) -> list[str]:
-        return [self.brand]
 
     def views(self) -> list[str]:
         return [self.brand]
@@ -264,13 +260,11 @@ class Product(Annotation):
     ingredients, perishability, ...)."""
 
     naming_weight: ClassVar[float] = 2.0
+    label_fields: ClassVar[tuple[str, ...]] = ("name", "brand")
 
     name: str | None = None
     brand: str | None = None
     properties: dict[str, ProductValue] = {}
-
-    def labels(self) -> list[str]:
-        return [label for label in (self.name, self.brand) if label]
 
     def views(self) -> list[str]:
         return self.labels()
@@ -287,11 +281,10 @@ class Product(Annotation):
 class Barcode(Annotation):
     """A barcode read on the object."""
 
+    label_fields: ClassVar[tuple[str, ...]] = ("code",)
+
     code: str
     symbology: str = ""
-
-    def labels(self) -> list[str]:
-        return [self.code]
 
     def views(self) -> list[str]:
         return [self.code]
@@ -356,12 +349,10 @@ class GroundTruth(Annotation):
     more surely than any annotator."""
 
     naming_weight: ClassVar[float] = 5.0
+    label_fields: ClassVar[tuple[str, ...]] = ("class_name",)
 
     class_name: str
     pose: Pose | None = None
-
-    def labels(self) -> list[str]:
-        return [self.class_name]
 
 
 @stored_type("pm.annotation.Geometry")

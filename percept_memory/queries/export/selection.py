@@ -15,7 +15,8 @@ from itertools import groupby, islice
 
 from bson import ObjectId
 
-from percept_memory.converters import BLOB_KEY, DecodeContext, decode
+from percept_memory.converters import DecodeContext, decode
+from percept_memory.memory import documents as docs
 from percept_memory.memory.schema import CLUSTERS, OBJECTS, SCENES
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Cluster, ImageROI, Scene
@@ -105,7 +106,7 @@ class Selection:
                 projection |= {f"images.{roi.image}": 1 for roi in rois}
         found = list(self.store.db[SCENES].find(
             {"_id": {"$in": list({c.scene_id for c in clusters})}}, projection))
-        blobs = self.store.get_blobs(sorted({ref for doc in found for ref in _blobs(doc)}))
+        blobs = self.store.get_blobs(docs.blob_ids(found))
         return {doc["_id"]: decode(doc, DecodeContext(blobs)) for doc in found}
 
     def _object_names(self, clusters: list[Cluster]) -> dict[ObjectId, str]:
@@ -122,15 +123,3 @@ def _last_instant(timed: list[tuple[int, Cluster]]) -> list[tuple[int, Cluster]]
     while keep and timed[keep - 1][0] == timed[-1][0]:
         keep -= 1
     return timed[keep:]
-
-
-def _blobs(value) -> Iterator[str]:
-    """The blob ids a stored document refers to."""
-    if isinstance(value, dict):
-        if BLOB_KEY in value:
-            yield value[BLOB_KEY]
-        for item in value.values():
-            yield from _blobs(item)
-    elif isinstance(value, list):
-        for item in value:
-            yield from _blobs(item)

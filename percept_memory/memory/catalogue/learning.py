@@ -164,18 +164,18 @@ class Learner:
         p = self.params
         touched: set = set()
         graph = self.models[g].graph
-        comparisons = [(m, Comparison(graph, self.models[m].graph)) for m in compared
-                       if m != g and m in self.models]
-        for m, compared in comparisons:
-            if compared.included > p.high_inclusion >= compared.inclusion:  # m adds nothing
+        pairs = [(m, Comparison(graph, self.models[m].graph)) for m in compared
+                 if m != g and m in self.models]
+        for m, pair in pairs:
+            if pair.included > p.high_inclusion >= pair.inclusion:  # m adds nothing
                 touched |= self._absorb(m, g)
-        for m, compared in comparisons:
+        for m, pair in pairs:
             if m not in self.models:
                 continue
-            if compared.inclusion > p.high_inclusion:  # g adds nothing to m
+            if pair.inclusion > p.high_inclusion:  # g adds nothing to m
                 touched |= self._absorb(g, m)
                 return touched
-            weight = compared.normalized_jmi(p.max_modalities)
+            weight = pair.normalized_jmi(p.max_modalities)
             if weight > p.low_similarity:
                 self._link(g, m, weight)
                 touched |= {m} | self._filter_edges(g) | self._filter_edges(m)

@@ -109,6 +109,19 @@ def test_a_discarded_model_passes_on_its_neighbours_as_alike_as_they_are_to_the_
     assert memory.members == {2: {2}, 3: {3}}
 
 
+def test_a_new_model_discards_the_models_it_explains_even_when_another_explains_it():
+    """A short look at views 20-27 of object A shares 20-23 with object B and joins B. A later
+    look at A (5-27) explains it entirely, but is itself explained by A's model 0-24 compared
+    first: the short look must go all the same (algorithm 5, line 10), not stay on B."""
+    memory = learner(high_inclusion=0.75, low_similarity=0.3)
+    memory.learn(1, seq(*range(50, 61), *range(20, 24)), 15)  # B
+    memory.learn(2, seq(*range(20, 28)), 8)  # the short look at A, joins B
+    memory.learn(3, seq(*range(0, 25)), 25)  # A
+    assert memory.members == {1: {1, 2}, 3: {3}}
+    memory.learn(4, seq(*range(5, 28)), 23)  # A again
+    assert memory.members == {1: {1}, 3: {3}}
+
+
 def test_a_corrupted_cluster_splits_at_its_weakest_edge():
     """Two objects sharing a few views were joined by a weak edge; when the cluster grows past
     its limit the weak edge is cut and each object keeps its own (algorithm 6)."""

@@ -154,19 +154,25 @@ class Learner:
     # --- algorithm 5: the similarity graph --------------------------------------------------
 
     def _update_similarity_graph(self, g: Hashable, compared: Iterable[Hashable]) -> set:
+        """Algorithm 5, its line 10 first: every compared model the new one explains is
+        discarded before the loop may return at line 8 (the new model itself explained by
+        another). In the thesis' single loop, a small model the new one includes is kept or
+        not by the order of M: a part two objects share, stuck on the wrong one, stayed."""
         p = self.params
         touched: set = set()
-        for m in compared:
-            if m == g or m not in self.models:
+        graph = self.models[g].graph
+        pairs = [(m, Comparison(graph, self.models[m].graph)) for m in compared
+                 if m != g and m in self.models]
+        for m, pair in pairs:
+            if pair.included > p.high_inclusion >= pair.inclusion:  # m adds nothing
+                touched |= self._absorb(m, g)
+        for m, pair in pairs:
+            if m not in self.models:
                 continue
-            compared = Comparison(self.models[g].graph, self.models[m].graph)
-            if compared.inclusion > p.high_inclusion:  # g adds nothing to m
+            if pair.inclusion > p.high_inclusion:  # g adds nothing to m
                 touched |= self._absorb(g, m)
                 return touched
-            if compared.included > p.high_inclusion:  # m adds nothing to g
-                touched |= self._absorb(m, g)
-                continue
-            weight = compared.normalized_jmi(p.max_modalities)
+            weight = pair.normalized_jmi(p.max_modalities)
             if weight > p.low_similarity:
                 self._link(g, m, weight)
                 touched |= {m} | self._filter_edges(g) | self._filter_edges(m)

@@ -80,8 +80,9 @@ class Parameters:
     # Looks-the-same odds beyond which a new observation shows a look the object was seen with
     # (Decision.look): that look is refreshed; below, the observation is kept as a look of its
     # own, so a weak link (maybe a mistake) never replaces a look many observations agreed on.
-    # (A stay refreshes the last look whatever its odds: the place vouches for it.)
-    same_look_odds: float = 100.0
+    # (A stay refreshes the last look whatever its odds: the place vouches for it.) Tuned on
+    # bench/belief.py's tune seeds (1, 10, 100 tried at sigma 0.025 and 0.05).
+    same_look_odds: float = 10.0
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).

@@ -352,8 +352,9 @@ def _looks_fields(looks: list[tuple]) -> dict:
     """The looks kept (VIEWS_KEPT): the one seen last, and of the others those most
     observations showed, the newer of equals. A look that only a weak link brought (a
     mistake, maybe) goes first; one that many observations agreed on stays, so one wrong link
-    cannot make an object forget how it looks (Blodow 6.2.1: objects are compared by their
-    appearance; Duceux 3.4: a model of an object gathers all its views, not the last)."""
+    cannot make an object forget how it looks (Duceux 3.4.5: the views of one object are put
+    together and recognised as a stream, not one by one; Blodow 6.6: the memory aggregates
+    and filters what the observations say)."""
     *older, last = looks
     kept = sorted(range(len(older)), key=lambda k: (older[k][1], k))[-(VIEWS_KEPT - 1):]
     looks = [older[k] for k in sorted(kept)] + [last]

@@ -15,9 +15,16 @@ globally consistent (no object claimed twice) and runs in milliseconds:
   twice than for two different objects. Both distributions are learnt from the decisions as
   they are made (`Calibration`), so the model follows the real noise of the sensors, where
   the thesis learnt MLN weights offline from labelled data (6.2.3);
-- the likelihood of each explanation: stay ~ look place, move ~ look prior_move,
-  newview ~ place prior_newview; an object out of view can only have moved (formula 6); of
-  known objects that look alike beyond doubt, the move of the one seen last is likelier;
+- the likelihood of each explanation: stay ~ look place staying, move ~ look prior_move,
+  newview ~ place prior_newview staying; an object out of view can only have moved (formula
+  6); of known objects that look alike beyond doubt, the move of the one seen last with that
+  look is likelier; `staying`, the belief that an object is still where it was last seen,
+  decays with the time since, at a rate learnt from the places looked at (`Dwell`);
+- an object is known by every look it was seen with (`Known.others`), each kept by how many
+  observations showed it (consolidation.py), so one wrong link adds a look but cannot make
+  the object forget its own (Duceux 3.4.5: recognise on the stream of an object's views, not
+  on one; Blodow 6.6: the memory remembers "how they look, where they usually stand, when and
+  where they were seen the last time");
 - "appear" and "unmatched" are options with their own likelihoods, so the assignment may
   prefer them to a poor match;
 - for every new cluster the normalised likelihoods of all its alternatives are kept, so the
@@ -390,7 +397,8 @@ class Dwell:
     beyond `memory` looks. Belief in an unseen object's place decays with it: an object not
     seen for long is likelier moved, so another object found at its place is likelier another
     object than its other side (issue: stale candidates; Blodow 6.2.1 takes the place as
-    evidence of the same object, true only while it is still there)."""
+    evidence of the same object, true only while it is still there; 6.6: remembering "when
+    and where they were seen the last time", and forgetting)."""
 
     left: float
     watched: float

@@ -253,6 +253,20 @@ def test_the_catalogue_learns_each_observation_as_the_object_it_was_by_then(empt
     assert stored_catalogue(empty_store) == single
 
 
+def test_an_object_keeps_the_look_most_observations_showed(empty_store):
+    """Seen red three times, then turned where it stood to four looks seen once each (more
+    than the looks kept): red, the look most observations agreed on, is still known, so the
+    object taken away and found red on another table is the same object, moved."""
+    reds = [_box("red", 0.5) for _ in range(3)]
+    turns = [_box(colour, 0.5) for colour in ("blue", "green", "yellow", "white")]
+    again = _box("red", 3.5)
+    consolidate_one_by_one(empty_store, [
+        *(_looks(0.5, c, t=t) for t, c in enumerate([*reds, *turns])),
+        _looks(0.5, t=7), _looks(3.5, again, t=8)])
+    assert empty_store.db.events.find_one({"cluster_id": again.id})["explanation"] == "move"
+    assert empty_store.db.objects.count_documents({"map": "sides"}) == 1
+
+
 def test_lookalikes_seen_side_by_side_are_never_merged(empty_store):
     left, right, later = _box("red", 0.3), _box("red", 0.7), _box("red", 3.5)
     consolidate_one_by_one(empty_store, [_looks(0.5, left, right, t=0), _looks(3.5, later, t=1)])
@@ -279,9 +293,9 @@ def test_candidates_are_given_to_identity_with_when_they_were_last_seen(empty_st
 
     given, resolve = [], consolidation.resolve
 
-    def spy(new, known, *args):
+    def spy(new, known, *args, **kwargs):
         given.append({k.key: k.last_seen for k in known})
-        return resolve(new, known, *args)
+        return resolve(new, known, *args, **kwargs)
 
     monkeypatch.setattr(consolidation, "resolve", spy)
     red, blue = _box("red", 0.3), _box("blue", 0.7)

@@ -212,3 +212,40 @@ def test_the_calibration_learns_what_similar_means_for_the_sensors():
     assert calibration.look.odds(same) > 3
     assert calibration.look.odds(different) < 0.05
     assert Calibration.from_document(calibration.to_document()) == calibration
+
+
+def test_of_two_lookalikes_the_one_seen_last_with_that_look_is_the_one_moved_here():
+    """An object that took a cup's look once (a wrong link) and was seen since as the plate it
+    is, is not where the cup went: the object seen last *with the look* is (Known.others_seen),
+    not the object seen last."""
+    took = Known("took", obs("its-plate", 0.0, 0.0, plate()), False,
+                 [obs("a-cup-once", 1.0, 0.0, cup())], last_seen=10, others_seen=[3])
+    mug = Known("cup", obs("the-cup", 3.0, 0.0, cup()), False, last_seen=5)
+    now = [obs("n", 6.0, 0.0, cup())]
+    assert outcome(resolve(now, [took, mug], DEFAULTS))["n"] == ("cup", MOVE)
+    took = replace(took, others_seen=[7])  # had it been seen with it after the cup
+    assert outcome(resolve(now, [took, mug], DEFAULTS))["n"] == ("took", MOVE)
+
+
+def test_a_place_long_unseen_is_weak_evidence_of_the_object_there():
+    """Something showing a cup's look where a plate was seen: just after, the plate turned
+    is likelier than the cup moved there; ten hours later (the prior dwell is an hour) the
+    plate has likely gone long ago, and the cup, which looks the same, is the one."""
+    plate_there = Known("plate", obs("old-plate", 0.0, 0.0, plate()), True, last_seen=0)
+    mug = Known("cup", obs("old-cup", 3.0, 0.0, cup()), False, last_seen=0)
+    now = [obs("n", 0.0, 0.0, cup())]
+    hour = 3600 * 10**9
+    assert outcome(resolve(now, [plate_there, mug], DEFAULTS, now=1))["n"] == (
+        "plate", NEWVIEW)
+    assert outcome(resolve(now, [plate_there, mug], DEFAULTS, now=10 * hour))["n"] == (
+        "cup", MOVE)
+
+
+def test_the_dwell_time_is_learnt_from_the_places_looked_at():
+    """Objects found gone from their place one look in five, 10 s after they were last seen:
+    an object stays about 50 s (the prior said an hour, now forgotten)."""
+    dwell = Calibration.prior(DEFAULTS).dwell
+    assert dwell.staying(60.0) > 0.98
+    for k in range(400):
+        dwell.learn(k % 5 == 0, 10.0, DEFAULTS.memory)
+    assert dwell.staying(50.0) == pytest.approx(np.exp(-1), rel=0.1)

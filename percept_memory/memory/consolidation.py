@@ -6,7 +6,8 @@ scene, live and in a rebuild alike.
 `objects` holds one document per physical object believed to exist, in one map:
     {_id, map, name, names, label_weights, state: present | hidden | disappeared, first_seen,
      last_seen (ns), last_scene, last_cluster, views (a cluster per distinct look it was seen
-     with, the last one last), position, x, y, region, robot, observations}
+     with, the last one last), view_support and view_seen (per view, how many observations
+     showed it and when the last did), position, x, y, region, robot, observations}
 `events` holds one document per object per scene that concerned it:
     {_id, map, object_id, scene_id, cluster_id, time (ns), robot, explanation (stay, move,
      newview, appear, hidden, disappear), probability, alternatives [{object_id, explanation,
@@ -59,7 +60,7 @@ RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_s
 # what deciding reads of a candidate object, with the label weights its names are summed in
 CANDIDATE_FIELDS = {"state": 1, "position": 1, "place_count": 1, "region": 1,
                     "last_cluster": 1, "last_seen": 1, "first_seen": 1, "views": 1,
-                    "label_weights": 1}
+                    "view_support": 1, "view_seen": 1, "label_weights": 1}
 MAX_PLACE_COUNT = 20  # observations an object's place is the mean of, at most
 VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
@@ -136,14 +137,13 @@ class Consolidation:
         how many of its annotations came with the scene (the evidence to decide on)."""
         believed = self._candidates(scene, places, session)
         seen_as = self.observations([c for o, _ in believed for c in _views(o)], session)
-        known = [Known(o["_id"], _placed(seen_as[o["last_cluster"]], o.get("position")), in_view,
-                       [seen_as[c] for c in _views(o) if c != o["last_cluster"] and c in seen_as],
-                       o["last_seen"])
-                 for o, in_view in believed if o["last_cluster"] in seen_as]
+        known = [_known(o, in_view, seen_as) for o, in_view in believed
+                 if o["last_cluster"] in seen_as]
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
         apart = self._kept_apart(kept, later, session)
-        decisions = resolve(new, known, self.params, calibration, apart)
+        decisions = resolve(new, known, self.params, calibration, apart=apart,
+                            now=scene.timestamp)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in kept}
@@ -173,9 +173,12 @@ class Consolidation:
         if asked or any(d.lookalikes for d in decisions):
             later.write()  # what follows reads the events and moves the links
         merged: dict = {}  # object -> the object it was merged into
-        for keep, twin in self._remembered_twice(decisions, clusters, apart, session):
+        twins, taken_looks = self._remembered_twice(decisions, clusters, apart, session)
+        for keep, twin in twins:
             self._merge(keep, twin, scene, places, session)
             merged[twin] = keep
+        for other, look in taken_looks:
+            self._forget_look(other, look, session)
         for keep, twin in self._asked_to_merge(asked, seen_as, apart, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
             if keep != twin:
@@ -219,17 +222,31 @@ class Consolidation:
         object not seen now, the two never seen together in one scene: one object
         remembered twice (e.g. moved while turned to a side not seen before, then turned
         back). Identical twins never seen side by side are merged too: nobody could tell
-        them apart."""
-        pairs, taken = [], {d.object for d in decisions if d.key in clusters}
+        them apart. And (object, look): the lookalikes seen apart, with the look of theirs
+        the observation matched."""
+        pairs, taken, looks = [], {d.object for d in decisions if d.key in clusters}, []
         for decision in decisions:
             if decision.key not in clusters or decision.object is None:
                 continue
-            for other in decision.lookalikes:
+            for other, look in decision.lookalikes.items():
                 if other not in taken and other not in apart.get(decision.key, ()) \
                         and not self._seen_together(decision.object, other, session):
                     pairs.append((decision.object, other))
                     taken.add(other)
-        return pairs
+                else:
+                    looks.append((other, look))
+        return pairs, looks
+
+    def _forget_look(self, object_id, look, session) -> None:
+        """A look of an object that another object, seen apart from it, now shows beyond
+        doubt, and that it does not show itself now (not its last): it came by a wrong link
+        and is forgotten, so it draws no more of the other object's observations. (Identical
+        twins each keep the look they were last seen with.)"""
+        doc = self.objects.find_one({"_id": object_id}, CANDIDATE_FIELDS, session=session)
+        if doc is None or look == doc["last_cluster"] or look not in _views(doc):
+            return
+        self.objects.update_one({"_id": object_id}, {"$set": _looks_fields(
+            [kept for kept in _looks(doc) if kept[0] != look])}, session=session)
 
     def _seen_together(self, a, b, session) -> bool:
         scenes = [set(self.events.distinct("scene_id", {"object_id": o, "cluster_id": {
@@ -241,9 +258,10 @@ class Consolidation:
         become `keep`'s, and `twin` is no more."""
         kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
         weights = stored_weights(kept) + stored_weights(gone)
-        views = [v for v in _views(gone) if v not in _views(kept)] + _views(kept)
+        mine = set(_views(kept))
+        looks = [look for look in _looks(gone) if look[0] not in mine] + _looks(kept)
         self.objects.update_one({"_id": keep}, {
-            "$set": {"views": views[-VIEWS_KEPT:], **naming_fields(weights),
+            "$set": {**_looks_fields(looks), **naming_fields(weights),
                      "first_seen": min(kept["first_seen"], gone["first_seen"])},
             "$inc": {"observations": gone.get("observations", 0)}}, session=session)
         self.objects.delete_one({"_id": twin}, session=session)
@@ -301,6 +319,15 @@ class Consolidation:
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
 
 
+def _known(doc: dict, in_view: bool, seen_as: dict) -> Known:
+    """What identity knows of a candidate object: its last look at its estimated place, its
+    other looks and when each was last seen."""
+    others = [(seen_as[view], seen) for view, _, seen in _looks(doc)
+              if view != doc["last_cluster"] and view in seen_as]
+    return Known(doc["_id"], _placed(seen_as[doc["last_cluster"]], doc.get("position")),
+                 in_view, [o for o, _ in others], doc["last_seen"], [s for _, s in others])
+
+
 def _after(merged: dict, object_id):
     """The object an object is now, after the merges of a scene so far."""
     while object_id in merged:
@@ -340,6 +367,28 @@ def _views(doc: dict) -> list:
     """The clusters showing each distinct look of an object, the one it was last seen with
     last (older beliefs kept only the last)."""
     return doc.get("views") or [doc["last_cluster"]]
+
+
+def _looks(doc: dict) -> list[tuple]:
+    """An object's looks: (the cluster showing it last, how many observations showed it,
+    when the last did); older beliefs kept neither count nor time."""
+    views = _views(doc)
+    return list(zip(views, doc.get("view_support") or [1] * len(views),
+                    doc.get("view_seen") or [doc["last_seen"]] * len(views), strict=True))
+
+
+def _looks_fields(looks: list[tuple]) -> dict:
+    """The looks kept (VIEWS_KEPT): the one seen last, and of the others those most
+    observations showed, the newer of equals. A look that only a weak link brought (a
+    mistake, maybe) goes first; one that many observations agreed on stays, so one wrong link
+    cannot make an object forget how it looks (Duceux 3.4.5: the views of one object are put
+    together and recognised as a stream, not one by one; Blodow 6.6: the memory aggregates
+    and filters what the observations say)."""
+    *older, last = looks
+    kept = sorted(range(len(older)), key=lambda k: (older[k][1], k))[-(VIEWS_KEPT - 1):]
+    looks = [older[k] for k in sorted(kept)] + [last]
+    return {"views": [look[0] for look in looks], "view_support": [look[1] for look in looks],
+            "view_seen": [look[2] for look in looks]}
 
 
 class Later:
@@ -394,7 +443,10 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
     if cluster is None:  # not seen: hidden or disappeared, where it was
         return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
     weights = stored_weights(previous)
-    views = [c for c in _views(previous) if c != decision.look] if previous else []
+    looks = _looks(previous) if previous else []
+    support = 1 + sum(look[1] for look in looks if look[0] == decision.look)
+    looks = [look for look in looks if look[0] != decision.look] + [
+        (cluster.id, support, scene.timestamp)]
     weights.update(naming_labels(cluster.annotations))
     position, count = place
     return UpdateOne(
@@ -403,7 +455,7 @@ def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster
             "$set": {
                 "map": scene.map, "state": "present", "last_seen": scene.timestamp,
                 "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
-                "views": [*views, cluster.id][-VIEWS_KEPT:],
+                **_looks_fields(looks),
                 "position": position, "place_count": count,
                 "x": position[0] if position else None,
                 "y": position[1] if position else None, "region": cluster.region,

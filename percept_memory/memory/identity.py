@@ -15,9 +15,16 @@ globally consistent (no object claimed twice) and runs in milliseconds:
   twice than for two different objects. Both distributions are learnt from the decisions as
   they are made (`Calibration`), so the model follows the real noise of the sensors, where
   the thesis learnt MLN weights offline from labelled data (6.2.3);
-- the likelihood of each explanation: stay ~ look place, move ~ look prior_move,
-  newview ~ place prior_newview; an object out of view can only have moved (formula 6); of
-  known objects that look alike beyond doubt, the move of the one seen last is likelier;
+- the likelihood of each explanation: stay ~ look place staying, move ~ look prior_move,
+  newview ~ place prior_newview staying; an object out of view can only have moved (formula
+  6); of known objects that look alike beyond doubt, the move of the one seen last with that
+  look is likelier; `staying`, the belief that an object is still where it was last seen,
+  decays with the time since, at a rate learnt from the places looked at (`Dwell`);
+- an object is known by every look it was seen with (`Known.others`), each kept by how many
+  observations showed it (consolidation.py), so one wrong link adds a look but cannot make
+  the object forget its own (Duceux 3.4.5: recognise on the stream of an object's views, not
+  on one; Blodow 6.6: the memory remembers "how they look, where they usually stand, when and
+  where they were seen the last time");
 - "appear" and "unmatched" are options with their own likelihoods, so the assignment may
   prefer them to a poor match;
 - for every new cluster the normalised likelihoods of all its alternatives are kept, so the
@@ -77,6 +84,12 @@ class Parameters:
     # (two ids with its look, once given to objects seen side by side, so never merged) is
     # otherwise a coin flip each time it moves. Tuned on bench/belief.py's tune seeds.
     superseded: float = 4.0
+    # Looks-the-same odds beyond which a new observation shows a look the object was seen with
+    # (Decision.look): that look is refreshed; below, the observation is kept as a look of its
+    # own, so a weak link (maybe a mistake) never replaces a look many observations agreed on.
+    # (A stay refreshes the last look whatever its odds: the place vouches for it.) Tuned on
+    # bench/belief.py's tune seeds (1, 10, 100 tried at sigma 0.025 and 0.05).
+    same_look_odds: float = 10.0
     # Each annotator is wrong now and then (a shape misread, a colour under other light): one
     # disagreeing type weighs (a factor of at most 1/floor) but cannot veto the others, as it
     # would in a plain geometric mean (thesis 6.1.2).
@@ -91,6 +104,9 @@ class Parameters:
     place_same: float = 0.9
     place_different: float = 0.1
     prior_weight: float = 1.0
+    # ...and how long an object stays where it was put before it is believed to start, in
+    # seconds (one prior_weight of a move in that long); the map's own rate is learnt.
+    dwell_s: float = 3600.0
     memory: float = 500.0
     confident: float = 0.1424  # decisions at least this likely teach it what differs
 
@@ -127,6 +143,7 @@ class Known:
     in_view: bool
     others: Sequence[Observation] = ()
     last_seen: int = 0  # when it was last seen (any clock; only the order counts)
+    others_seen: Sequence[int] = ()  # when each of its other looks was last seen (default 0)
 
 
 @dataclass
@@ -146,11 +163,13 @@ class Decision:
     probability: float
     alternatives: list[Alternative] = field(default_factory=list)
     # the key of the known look (Known.last or one of its others) the new observation looks
-    # the same as; None for a look the object was not seen with before
+    # the same as beyond doubt (Parameters.same_look_odds); None for a look the object was not
+    # seen with before, or one it only may have been
     look: Any = None
-    # other known objects the new observation looks the same as beyond doubt: one of them
-    # may be this very object, remembered twice (see consolidation.py's merge)
-    lookalikes: list = field(default_factory=list)
+    # other known objects the new observation looks the same as beyond doubt, each with the
+    # key of its look it matched: one of them may be this very object, remembered twice (see
+    # consolidation.py's merge), or one that took this look by a wrong link
+    lookalikes: dict = field(default_factory=dict)
 
 
 def gaussian(distance: float, sigma: float) -> float:
@@ -370,11 +389,48 @@ DIFFERENT: dict[str, type] = {"look": Histogram, "place": Spread}
 
 
 @dataclass
+class Dwell:
+    """How long an object stays where it was seen: of `looks` at the believed places of
+    objects in view, `left` found the object gone (moved or taken), over `watched` seconds
+    since each was last seen; their ratio is the rate of an exponential dwell time (its
+    maximum-likelihood estimate), learnt from the decisions like the cues and forgetting
+    beyond `memory` looks. Belief in an unseen object's place decays with it: an object not
+    seen for long is likelier moved, so another object found at its place is likelier another
+    object than its other side (issue: stale candidates; Blodow 6.2.1 takes the place as
+    evidence of the same object, true only while it is still there; 6.6: remembering "when
+    and where they were seen the last time", and forgetting)."""
+
+    left: float
+    watched: float
+    looks: float
+
+    @classmethod
+    def prior(cls, params: Parameters) -> Dwell:
+        """The prior dwell time as a hundredth of a departure over a hundredth of it, so
+        the first looks' seconds outweigh it (a whole one would be an hour's watching)."""
+        return cls(params.prior_weight / 100, params.prior_weight * params.dwell_s / 100,
+                   params.prior_weight)
+
+    def staying(self, elapsed_s: float) -> float:
+        """The probability an object is still where it was seen `elapsed_s` seconds ago."""
+        return math.exp(-self.left / max(self.watched, 1e-9) * max(elapsed_s, 0.0))
+
+    def learn(self, left: bool, elapsed_s: float, memory: float) -> None:
+        """One look at an object's believed place: it had left it, or it had not."""
+        fade = min(1.0, (memory - 1.0) / max(self.looks, 1.0))
+        self.left = self.left * fade + left
+        self.watched = self.watched * fade + max(elapsed_s, 0.0)
+        self.looks = self.looks * fade + 1.0
+
+
+@dataclass
 class Calibration:
-    """What the model has learnt about its sensors; kept across scenes (and stored)."""
+    """What the model has learnt about its sensors and its world; kept across scenes (and
+    stored)."""
 
     look: Cue
     place: Cue
+    dwell: Dwell
 
     @classmethod
     def prior(cls, params: Parameters) -> Calibration:
@@ -385,45 +441,53 @@ class Calibration:
                        kind.around(different, params.prior_weight, shape=4.0))
 
         return cls(look=cue(params.look_same, params.look_different, DIFFERENT["look"]),
-                   place=cue(params.place_same, params.place_different, DIFFERENT["place"]))
+                   place=cue(params.place_same, params.place_different, DIFFERENT["place"]),
+                   dwell=Dwell.prior(params))
 
     def to_document(self) -> dict:
-        return {name: {side: {k: v.tolist() if isinstance(v, np.ndarray) else v
-                              for k, v in vars(getattr(getattr(self, name), side)).items()}
-                       for side in ("same", "different")} for name in ("look", "place")}
+        return {**{name: {side: {k: v.tolist() if isinstance(v, np.ndarray) else v
+                                 for k, v in vars(getattr(getattr(self, name), side)).items()}
+                          for side in ("same", "different")} for name in ("look", "place")},
+                "dwell": vars(self.dwell)}
 
     @classmethod
     def from_document(cls, doc: dict) -> Calibration:
+        """(A calibration stored before the dwell time was learnt starts from its prior.)"""
         return cls(**{name: Cue(Spread(**doc[name]["same"]), kind(**doc[name]["different"]))
-                      for name, kind in DIFFERENT.items()})
+                      for name, kind in DIFFERENT.items()},
+                   dwell=Dwell(**doc["dwell"]) if "dwell" in doc else Dwell.prior(Parameters()))
 
 
 def explanations(look: float, place: float, in_view: bool, params: Parameters,
-                 other: float = 1.0, superseded: bool = False) -> dict:
+                 other: float = 1.0, superseded: bool = False, staying: float = 1.0) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
     being another object, from the odds of "looks the same" (as it last looked; `other`: as
     the best of its other known looks) and "is at the same place"; `superseded`: another
-    candidate seen after it looks at least as alike, beyond doubt. Turned to a side seen
-    before is likelier than to a side never seen."""
+    candidate seen after it looks at least as alike, beyond doubt; `staying`: the
+    probability it is still where it was seen (Dwell). Turned to a side seen before is
+    likelier than to a side never seen."""
     seen = max(look, other)
     move = seen * params.prior_move / (params.superseded if superseded else 1.0)
     if not in_view:  # its old place is not seen now: it can only have been moved here
         return {Explanation.MOVE: move}
     return {
-        Explanation.STAY: look * place,
+        Explanation.STAY: look * place * staying,
         Explanation.MOVE: move,
-        Explanation.NEWVIEW: place * params.prior_newview * max(other, 1.0),
+        Explanation.NEWVIEW: place * params.prior_newview * max(other, 1.0) * staying,
     }
 
 
 def resolve(new: Sequence[Observation], known: Sequence[Known],
             params: Parameters | None = None,
             calibration: Calibration | None = None,
-            apart: Mapping[Any, Collection] | None = None) -> list[Decision]:
+            apart: Mapping[Any, Collection] | None = None, now: int | None = None
+            ) -> list[Decision]:
     """One joint decision for a scene: a Decision per new observation (in order), then one
     per known object left unmatched (hidden or disappear). A `calibration` kept by the caller
     learns from the confident decisions; without one, the prior calibration is used.
-    `apart`: observation key -> the known objects a person said it is not (no likelihood)."""
+    `apart`: observation key -> the known objects a person said it is not (no likelihood).
+    `now`: the scene's time in ns, on the clock of the candidates' `last_seen` (None: places
+    never go stale)."""
     params = params or Parameters()
     calibration = calibration or Calibration.prior(params)
     # the cues of every pair, then their odds at once; the new observations with each other
@@ -436,9 +500,12 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
                          params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
     place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
-    other_odds, other_look = _other_looks(new, known, calibration, params)
-    superseded = _superseded(np.maximum(look_odds, other_odds).reshape(len(new), len(known)),
-                             known, params.lookalike_odds)
+    other_odds, other_look, other_seen = _other_looks(new, known, calibration, params)
+    seen = np.where(look_odds >= other_odds, np.array([k.last_seen for k in known]),
+                    other_seen)
+    superseded = _superseded(np.maximum(look_odds, other_odds), seen, params.lookalike_odds)
+    elapsed_s = [0.0 if now is None else (now - k.last_seen) / 1e9 for k in known]
+    staying = [calibration.dwell.staying(e) for e in elapsed_s]
     likelihood = np.zeros((len(new), len(known)))
     best: dict[tuple[int, int], Explanation] = {}
     table: list[list[dict]] = []
@@ -447,7 +514,7 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
         for j, candidate in enumerate(known):
             ways = explanations(float(look_odds[i, j]), float(place_odds[i, j]),
                                 candidate.in_view, params, float(other_odds[i, j]),
-                                bool(superseded[i, j]))
+                                bool(superseded[i, j]), staying[j])
             row.append(ways)
             best[i, j] = max(ways, key=ways.get)
             likelihood[i, j] = ways[best[i, j]]
@@ -470,18 +537,24 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
             continue
         matched.add(j)
         explanation = best[i, j]
-        look = (known[j].last.key if look_odds[i, j] >= max(other_odds[i, j], 1.0)
+        look = (known[j].last.key if explanation is Explanation.STAY  # its last look, by place
+                else None if max(look_odds[i, j], other_odds[i, j]) < params.same_look_odds
+                else known[j].last.key if look_odds[i, j] >= other_odds[i, j]
                 else other_look[i][j])
         alike = np.maximum(look_odds[i], other_odds[i]) >= params.lookalike_odds
         decisions.append(Decision(observation.key, known[j].key, explanation,
                                   _probability(alternatives, known[j].key, explanation),
                                   alternatives, look,
-                                  [known[k].key for k in np.flatnonzero(alike) if k != j]))
+                                  {known[k].key: known[k].last.key if look_odds[i, k]
+                                   >= other_odds[i, k] else other_look[i][k]
+                                   for k in np.flatnonzero(alike) if k != j}))
     for j, candidate in enumerate(known):
         if j not in matched:
             explanation = Explanation.DISAPPEAR if candidate.in_view else Explanation.HIDDEN
             decisions.append(Decision(candidate.key, candidate.key, explanation, 1.0))
     _learn(calibration, decisions[:len(new)], assigned, looked, places, looked_apart, params)
+    if now is not None:
+        _learn_dwell(calibration.dwell, decisions, known, elapsed_s, params)
     return decisions
 
 
@@ -492,35 +565,40 @@ def _kept_apart(observation: Observation, known: Sequence[Known],
     return [j for j, candidate in enumerate(known) if candidate.key in said]
 
 
-def _superseded(alike: np.ndarray, known: Sequence[Known], beyond_doubt: float
-                ) -> np.ndarray:
-    """For every (new, known) pair whether another known object seen after that one looks at
-    least as alike, with odds beyond doubt (`alike`: the looks' odds)."""
-    seen = np.array([k.last_seen for k in known])
-    later = seen[None, :] > seen[:, None]  # [j, k]: k was seen after j
+def _superseded(alike: np.ndarray, seen: np.ndarray, beyond_doubt: float) -> np.ndarray:
+    """For every (new, known) pair whether another known object looks at least as alike, with
+    odds beyond doubt, by a look seen after the one of that object it looks like (`alike`: the
+    looks' odds; `seen`: when the look each pair compared best with was last seen). Where
+    a look was last seen is where its object went: an object that took that look once by a
+    wrong link, and was seen since with its own, is not the one seen last with it."""
+    later = seen[:, None, :] > seen[:, :, None]  # [i, j, k]: k's look was seen after j's
     sure = alike >= beyond_doubt
-    return np.any(later[None, :, :] & sure[:, None, :]
-                  & (alike[:, None, :] >= alike[:, :, None]), axis=2)
+    return np.any(later & sure[:, None, :] & (alike[:, None, :] >= alike[:, :, None]), axis=2)
 
 
 def _other_looks(new: Sequence[Observation], known: Sequence[Known],
-                 calibration: Calibration, params: Parameters) -> tuple[np.ndarray, list]:
+                 calibration: Calibration, params: Parameters
+                 ) -> tuple[np.ndarray, list, np.ndarray]:
     """For every (new, known) pair, the odds that the new one looks the same as the best of
-    the known object's other looks (1 where it has none), and that look's key when those
-    odds are above 1 (else None)."""
+    the known object's other looks (1 where it has none), that look's key when those odds
+    are above 1 (else None), and when that look was last seen (0 where none)."""
     odds = np.ones((len(new), len(known)))
+    seen = np.zeros((len(new), len(known)))
     keys: list[list] = [[None] * len(known) for _ in new]
-    others = [(j, other) for j, k in enumerate(known) for other in k.others]
+    others = [(j, other, when) for j, k in enumerate(known)
+              for other, when in zip(k.others, k.others_seen or [0] * len(k.others),
+                                     strict=True)]
     if not others or not new:
-        return odds, keys
-    looked = looks([o.by_type for o in new], [o.by_type for _, o in others],
+        return odds, keys, seen
+    looked = looks([o.by_type for o in new], [o.by_type for _, o, _ in others],
                    params.evidence_floor)
     each = calibration.look.odds(looked)
-    for c, (j, other) in enumerate(others):
+    for c, (j, other, when) in enumerate(others):
         for i in np.flatnonzero(each[:, c] > odds[:, j]):
             odds[i, j] = each[i, c]
             keys[i][j] = other.key
-    return odds, keys
+            seen[i, j] = when
+    return odds, keys, seen
 
 
 def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[int, int],
@@ -552,6 +630,20 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
                     calibration.place.different.learn(float(place_u[i, k]), memory)
     alike = surprise(looked_apart[np.triu_indices_from(looked_apart, 1)])
     calibration.look.different.learn_all(alike[~np.isnan(alike)], memory)
+
+
+def _learn_dwell(dwell: Dwell, decisions: list[Decision], known: Sequence[Known],
+                 elapsed_s: list[float], params: Parameters) -> None:
+    """Every object whose believed place is in view was looked for there: found (stay,
+    newview) or not (moved elsewhere, gone), after the time since it was last seen; the
+    confident decisions teach the dwell time."""
+    index = {k.key: j for j, k in enumerate(known)}
+    for decision in decisions:
+        j = index.get(decision.object)
+        if j is None or not known[j].in_view or decision.probability < params.confident:
+            continue
+        dwell.learn(decision.explanation not in (Explanation.STAY, Explanation.NEWVIEW),
+                    elapsed_s[j], params.memory)
 
 
 def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[int, int]:

@@ -83,7 +83,8 @@ def test_crops_of_the_same_item_look_more_alike_than_other_items():
 # --- the index --------------------------------------------------------------------------------
 
 
-def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path):
+def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path, monkeypatch):
+    monkeypatch.setattr(similarity, "CHUNK", 7)  # read in chunks: the vectors outgrow the rows
     clusters = store.db[CLUSTERS].count_documents({})
     index = SimilarityIndex(store, tmp_path / "index")
     assert index.refresh() == clusters

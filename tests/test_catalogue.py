@@ -10,6 +10,7 @@ import sys
 import numpy as np
 import pytest
 
+from percept_memory.demo import kitchen_week
 from percept_memory.memory.catalogue.graph_of_views import (
     GraphOfViews,
     edge,
@@ -24,6 +25,8 @@ from percept_memory.memory.catalogue.graph_of_views import (
     per_modalities_inclusion,
 )
 from percept_memory.memory.catalogue.learning import Change, Learner, Parameters
+from percept_memory.memory.catalogue.views import observation_views
+from percept_memory.memory.types import Cluster, Image, VisualWords
 from percept_memory.memory.types import annotations as a
 from percept_memory.memory.types.hypotheses import ImageROI
 
@@ -68,6 +71,21 @@ def test_views_come_from_the_types_declaring_them():
     words = a.FeatureVector(name="vfh", vector=vector).views()
     assert len(words) == 4 and words == a.FeatureVector(name="vfh", vector=near).views()
     assert a.Location(region="table").views() == []
+
+
+def test_a_crop_gives_its_visual_words_as_views():
+    rng = np.random.default_rng(4)
+    pixels, mask = kitchen_week.crop("ketchup", "front", rng)
+    roi = ImageROI(box=(0, 0, 64, 64), crop=Image(data=pixels, encoding="bgr8"),
+                   mask=Image(data=mask, encoding="mono8"), phash="0123456789abcdef")
+    words = VisualWords.of_crop(pixels, mask).views()
+    views = observation_views(Cluster(hypotheses=[roi]), 0)
+    assert [v for v in views if v.startswith("visualwords:")] == sorted(
+        f"visualwords:{w}" for w in words)
+    assert "imageroi:0.0123" in views
+    roi.crop = None
+    assert not [v for v in observation_views(Cluster(hypotheses=[roi]), 0)
+                if v.startswith("visualwords:")]
 
 
 def learner(**overrides) -> Learner:

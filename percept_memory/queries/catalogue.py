@@ -15,7 +15,7 @@ from bson import ObjectId
 
 from percept_memory.memory import documents as docs
 from percept_memory.memory.catalogue.graph_of_views import GraphOfViews, modalities_consensus
-from percept_memory.memory.catalogue.stage import NO_PIXELS, CatalogueStage
+from percept_memory.memory.catalogue.stage import NO_CLOUDS, CatalogueStage
 from percept_memory.memory.catalogue.views import observation_views
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, OBJECTS
@@ -70,7 +70,7 @@ def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,
     """The entries an observation may be, best first: `inclusion`, how much of its views the
     entry holds (Duceux eq. 6.2), and `consensus`, how far its modalities agree that the entry
     is the best match (eq. 5.12)."""
-    doc = store.clusters.find_one({"_id": cluster_id}, NO_PIXELS)
+    doc = store.clusters.find_one({"_id": cluster_id}, NO_CLOUDS)
     if doc is None:
         raise NotFound("cluster", str(cluster_id))
     scene = store.scenes.find_one({"_id": doc["scene_id"]}, {"map": 1}) or {}

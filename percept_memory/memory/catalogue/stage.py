@@ -49,7 +49,7 @@ LOW_SIMILARITY = 0.03
 HIGH_INCLUSION = 0.75
 VERSION = "catalogue_version"
 EVIDENCE = {"object_id": 1, "hypotheses": 1, "annotations": 1, docs.ARRIVED_KEY: 1}
-NO_PIXELS = {"hypotheses.crop": 0, "hypotheses.mask": 0, "hypotheses.cloud": 0}
+NO_CLOUDS = {"hypotheses.cloud": 0}  # crops and masks are read: their visual words are views
 
 
 def declared_modalities() -> int:
@@ -100,7 +100,7 @@ class CatalogueStage:
             session=session)}
         wanted = [c for doc in scenes.values() for c in doc["clusters"]]
         found = list(self.store.clusters.find(
-            {"_id": {"$in": wanted}, "object_id": {"$ne": None}}, NO_PIXELS, session=session))
+            {"_id": {"$in": wanted}, "object_id": {"$ne": None}}, NO_CLOUDS, session=session))
         blobs = self.store._blobs(found, session)
         clusters = {doc["_id"]: doc for doc in found}
         tracks = {doc["_id"]: doc for doc in self.tracks.find(

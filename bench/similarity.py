@@ -18,20 +18,30 @@
    (the model loaded) and warm, and with a vocabulary of --words more words.
 4. Latency at scale: an index of N synthetic rows (random unit vectors of the largest crop
    descriptor's size, 144; four regions, two robots, a week of times) built straight into
-   the index (not through MongoDB: storing a million clusters is another benchmark's job),
+   the index (not through MongoDB: that is 5),
    its build time and size on disk; p50/p95 of a filtered search (one region and one day:
    about 1/28 of the rows) and of an unfiltered one, and recall@10 against exact search.
    Random vectors are the hard case for a graph index; real descriptors cluster, so recall@10
    is also measured on --clustered vectors that do (20 looks of each item, two looks of one
    item ~0.6 alike).
-5. Ingest: storing scenes does no index work (the index catches up from MongoDB when it is
+5. Through MongoDB (--mongodb N): N clusters stored as scenes of 50 (a region, a map per
+   robot, a week of times, a 144-float feature vector clustered as in 4), the index built
+   from MongoDB by refresh and saved beside it (time, size), and p50/p95 of similar_to from a
+   stored cluster with a filter (region and day; map and day), hits read from MongoDB.
+   Default 200,000: a million takes ~20 minutes to build on two shared cores; the per-million
+   build time and size are extrapolated linearly (the graph's insertion grows a little
+   faster than linearly).
+6. Ingest: storing scenes does no index work (the index catches up from MongoDB when it is
    next asked, memory/similarity.py), so ingest is not slowed at all; what it costs instead
    is the catch-up, measured here as the refresh after storing synthetic scenes in process,
    and as the slowdown ingest would see if that work were done inline. Meaning search does
    no ingest work either: its word vectors are computed when a query first meets a word.
+   The ORB visual words of a 64 px crop (crop-orb) are timed alone, and what they would cost
+   ingest if computed there (they are not: the index computes them as it catches up, the
+   catalogue stage as it learns).
 
 Usage: python bench/similarity.py [--days N] [--every N] [--vectors N] [--clustered N]
-                                  [--scenes N] [--words N]
+                                  [--mongodb N] [--scenes N] [--words N]
 """
 
 from __future__ import annotations
@@ -59,7 +69,15 @@ from percept_memory.memory.search_keys import trigrams
 from percept_memory.memory.settings import collect_less
 from percept_memory.memory.similarity import Entry, RowFilter, SimilarityIndex
 from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import Cluster, FeatureVector, GroundTruth, Location, Scene
+from percept_memory.memory.types import (
+    Cluster,
+    FeatureVector,
+    GroundTruth,
+    ImageROI,
+    Location,
+    Scene,
+)
+from percept_memory.memory.types.appearance import word_counts
 from percept_memory.queries import meaning
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.ops import QueryError
@@ -372,12 +390,26 @@ def through_mongodb(count: int, folder: Path, queries: int = 200) -> dict:
             "target_p95_ms": LATENCY_TARGET_MS, "met": p95 < LATENCY_TARGET_MS}
 
 
+def orb_cost(crops: list[np.ndarray]) -> dict:
+    """What the visual words of one crop cost (ORB and the nearest words), p50 and p95."""
+    took = []
+    for crop in crops:
+        begin = time.perf_counter()
+        word_counts(crop)
+        took.append(time.perf_counter() - begin)
+    return {"crops": len(crops), "p50_us": round(float(np.percentile(took, 50)) * 1e6),
+            "p95_us": round(float(np.percentile(took, 95)) * 1e6)}
+
+
 def ingest_cost(count: int, folder: Path) -> dict:
     image = kitchen_image()
     with scratch_store() as store:
         index = SimilarityIndex(store, folder / "ingest")
         index.refresh()
         generated = scenes(count, 1_700_000_000_000_000_000, image, seed=1)
+        crops = [h.crop.data for s in generated for c in s.clusters for h in c.hypotheses
+                 if isinstance(h, ImageROI) and h.crop is not None]
+        visual_words = orb_cost(crops)
         service = IngestService(store, batch_size=32)
         start = time.perf_counter()
         for _ in service.ingest_stream((str(i), s) for i, s in enumerate(generated)):
@@ -390,9 +422,13 @@ def ingest_cost(count: int, folder: Path) -> dict:
         index.refresh()
         idle_s = time.perf_counter() - start
     slowdown = refresh_s / ingest_s
+    orb_s = visual_words["p50_us"] * len(crops) / 1e6
     return {"scenes": count, "clusters": added,
             "ingest_clusters_per_s_no_index_work": round(added / ingest_s),
             "ingest_slowdown": 0.0,
+            "visual_words_per_64px_crop": visual_words,
+            "visual_words_slowdown_if_at_ingest": round(orb_s / ingest_s, 3),
+            "visual_words_share_of_catch_up": round(orb_s / refresh_s, 3),
             "catch_up_s": round(refresh_s, 2),
             "catch_up_clusters_per_s": round(added / refresh_s),
             "slowdown_if_inline": round(slowdown, 3),
@@ -407,6 +443,8 @@ def main() -> None:
     parser.add_argument("--vectors", type=int, default=1_000_000)
     parser.add_argument("--clustered", type=int, default=200_000,
                         help="vectors of the recall check on clustered data (0: skip)")
+    parser.add_argument("--mongodb", type=int, default=200_000,
+                        help="clusters stored for the figures through MongoDB (0: skip)")
     parser.add_argument("--scenes", type=int, default=300)
     parser.add_argument("--words", type=int, default=50_000,
                         help="words added to the vocabulary to see what a large one costs")
@@ -422,6 +460,8 @@ def main() -> None:
             "at_scale": at_scale(args.vectors, Path(folder)),
             "clustered_recall": clustered_recall(args.clustered, Path(folder))
             if args.clustered else None,
+            "through_mongodb": through_mongodb(args.mongodb, Path(folder))
+            if args.mongodb else None,
             "ingest": ingest_cost(args.scenes, Path(folder)),
         })
 

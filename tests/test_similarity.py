@@ -26,8 +26,14 @@ from percept_memory.memory.schema import CLUSTERS, OUTBOX, SCENES
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
 from percept_memory.memory.types import ColorHistogram, FeatureVector, ImageROI
-from percept_memory.memory.types.appearance import crop_descriptors, orb_features, vocabulary
-from percept_memory.memory.types.visual_words import VisualWords, learn_vocabulary
+from percept_memory.memory.types.appearance import (
+    crop_descriptors,
+    orb_features,
+    vocabulary,
+    word_rarity,
+)
+from percept_memory.memory.types.orb_vocabulary import learn_vocabulary
+from percept_memory.memory.types.visual_words import VisualWords
 from percept_memory.queries.similar import Similarity
 from percept_memory.webui.app import create_app
 
@@ -92,9 +98,14 @@ def test_visual_words_are_the_crops_orb_features_on_the_shipped_vocabulary():
     pixels, mask = kitchen_week.crop("corn_flakes", "front", rng)
     words = VisualWords.of_crop(pixels, mask)
     assert words.counts.shape == (64,) and words.counts.sum() == len(orb_features(pixels, mask))
-    assert len(words.views()) == 3
-    assert [int(w) for w in words.views()] == list(np.argsort(-words.counts.astype(int),
-                                                              kind="stable")[:3])
+    rarity = word_rarity()
+    assert [int(w) for w in words.views()] == list(np.argsort(-(words.counts * rarity),
+                                                              kind="stable")[:2])
+    common = int(np.argmin(rarity))  # a word said a hundred times says less than a rare one
+    assert VisualWords(counts=np.eye(64)[np.argmax(rarity)] + 100 * np.eye(64)[common]
+                       ).views()[0] == str(common)
+    assert VisualWords(counts=np.eye(64)[np.argmax(rarity)] + np.eye(64)[common]
+                       ).views()[0] == str(np.argmax(rarity))
     assert np.allclose(words.descriptors()["crop-orb"], crop_descriptors(pixels, mask)["crop-orb"])
     assert VisualWords.of_crop(np.full((64, 64, 3), 128, np.uint8)) is None  # nothing to find
     assert "crop-orb" not in crop_descriptors(np.full((64, 64, 3), 128, np.uint8))
@@ -107,7 +118,8 @@ def test_visual_words_are_the_crops_orb_features_on_the_shipped_vocabulary():
 def test_the_shipped_vocabulary_is_what_its_documented_command_makes():
     products = sorted((Path(backends.__file__).parent / "products").glob("*.jpg"))
     learnt = learn_vocabulary([*KITCHEN_FRAMES, *products])
-    assert learnt.shape == (64, 32) and np.array_equal(learnt, vocabulary())
+    assert learnt["words"].shape == (64, 32) and np.array_equal(learnt["words"], vocabulary())
+    assert np.allclose(-np.log(learnt["share"]), word_rarity())
 
 
 # --- the index --------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ CELLS, ORIENTATIONS = 4, 9  # gradients: 4 x 4 cells of 8 x 8 pixels, 9 orientat
 ORB_SIDE = 96
 ORB_PARAMETERS = {"nfeatures": 100, "edgeThreshold": 15, "patchSize": 15, "nlevels": 3,
                   "fastThreshold": 10}
-VOCABULARY = Path(__file__).with_name("orb_vocabulary.npy")  # visual_words.py makes it
+VOCABULARY = Path(__file__).with_name("orb_vocabulary.npz")  # visual_words.py makes it
 ORB_DESCRIPTOR = "crop-orb"
 
 
@@ -101,7 +101,15 @@ def orb_features(pixels: np.ndarray, mask: np.ndarray | None = None) -> np.ndarr
 @functools.cache
 def vocabulary() -> np.ndarray:
     """The visual words: ORB descriptors (rows of 32 bytes) each standing for its neighbours."""
-    return np.load(VOCABULARY)
+    with np.load(VOCABULARY) as stored:
+        return stored["words"]
+
+
+@functools.cache
+def word_rarity() -> np.ndarray:
+    """-log of the share of the training features on each word: how much a word says."""
+    with np.load(VOCABULARY) as stored:
+        return -np.log(stored["share"])
 
 
 def word_counts(pixels: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

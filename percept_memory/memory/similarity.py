@@ -411,8 +411,10 @@ class SimilarityIndex:
         passing = np.flatnonzero(allowed)
         if len(passing) <= EXACT_ROWS:
             rows = passing[vectors.has(passing)]
-            scores = vectors.scores(rows, vector)
-            return set(rows[np.argsort(-scores)[:count]].tolist())
+            if len(rows) <= count:
+                return set(rows.tolist())
+            scores = vectors.scores(rows, vector)  # the best `count`, in no order (_ranked's job)
+            return set(rows[np.argpartition(-scores, count)[:count]].tolist())
         fetch = int(count * len(allowed) / len(passing) * 2)
         while True:
             keys = vectors.nearest(vector, fetch)

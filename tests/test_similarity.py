@@ -8,6 +8,7 @@ import json
 import re
 import time
 from collections import Counter
+from datetime import timedelta
 from pathlib import Path
 
 import cv2
@@ -159,6 +160,17 @@ def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path, mon
     for collection in (SCENES, OUTBOX):  # the other tests know the day's scenes only
         store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
     store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
+
+
+def test_a_refresh_reads_only_the_ids_stored_since_the_last(store, day, tmp_path, monkeypatch):
+    monkeypatch.setattr(similarity, "MARGIN", timedelta(0))  # no transaction is open
+    index = SimilarityIndex(store, tmp_path / "index")
+    index.refresh()
+    read = []
+    monkeypatch.setattr(index, "_ids", lambda query: read.extend(
+        SimilarityIndex._ids(index, query)) or read)
+    index.refresh()
+    assert read == []  # not the newest cluster again, nor any stored before the last read
 
 
 def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_path):

@@ -109,6 +109,9 @@ def test_visual_words_are_the_crops_orb_features_on_the_shipped_vocabulary():
                        ).views()[0] == str(np.argmax(rarity))
     assert np.allclose(words.descriptors()["crop-orb"], crop_descriptors(pixels, mask)["crop-orb"])
     assert VisualWords.of_crop(np.full((64, 64, 3), 128, np.uint8)) is None  # nothing to find
+    for foreign in (np.arange(3), np.full(64, -1), np.full(64, 1j), np.full(64, np.nan)):
+        assert VisualWords(counts=foreign).views() == [] == list(VisualWords(
+            counts=foreign).descriptors())  # another vocabulary's counts, or no counts
     assert "crop-orb" not in crop_descriptors(np.full((64, 64, 3), 128, np.uint8))
     outside = np.zeros_like(mask)
     outside[:8, :8] = 255  # keypoints only where the mask is

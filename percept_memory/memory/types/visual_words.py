@@ -26,7 +26,13 @@ from __future__ import annotations
 import numpy as np
 
 from .annotations import Annotation
-from .appearance import ORB_DESCRIPTOR, sqrt_distribution, word_counts, word_rarity
+from .appearance import (
+    ORB_DESCRIPTOR,
+    sqrt_distribution,
+    vocabulary,
+    word_counts,
+    word_rarity,
+)
 from .base import stored_type
 from .raw import NDArray
 
@@ -47,17 +53,29 @@ class VisualWords(Annotation):
         counts = word_counts(pixels, mask)
         return cls(counts=counts, source="orb") if counts.any() else None
 
+    def words(self) -> np.ndarray | None:
+        """The counts, when they are counts of the shipped vocabulary's words (an annotator
+        counting on a vocabulary of its own says nothing comparable: None)."""
+        counts = np.asarray(self.counts).ravel()
+        if (counts.shape != (len(vocabulary()),) or counts.dtype.kind not in "iuf"
+                or not np.all(np.isfinite(counts)) or np.any(counts < 0)):
+            return None
+        return counts.astype(np.float64)
+
     def views(self) -> list[str]:
         """Its VIEWS words that say most (count x rarity, tf-idf with the training set's
         frequencies; ties: the lower word): few nodes, as the catalogue's other modalities
         give (Duceux 5.3.1). On the kitchen week, the 3 most frequent words were shared by 44
         of the 120 pairs of items, these 2 by 11, and as stable between two looks."""
-        counts = np.asarray(self.counts, np.int64).ravel()
+        counts = self.words()
+        if counts is None:
+            return []
         ranked = np.lexsort((np.arange(len(counts)), -counts * word_rarity()))[:VIEWS]
         return [str(word) for word in ranked if counts[word] > 0]
 
     def descriptors(self) -> dict[str, np.ndarray]:
         """Square roots of the word distribution: the inner product of two is the
         Bhattacharyya overlap of their bags of words."""
-        vector = sqrt_distribution(self.counts)
+        counts = self.words()
+        vector = None if counts is None else sqrt_distribution(counts)
         return {} if vector is None else {ORB_DESCRIPTOR: vector}

@@ -25,7 +25,7 @@ CELLS, ORIENTATIONS = 4, 9  # gradients: 4 x 4 cells of 8 x 8 pixels, 9 orientat
 ORB_SIDE = 96
 ORB_PARAMETERS = {"nfeatures": 100, "edgeThreshold": 15, "patchSize": 15, "nlevels": 3,
                   "fastThreshold": 10}
-VOCABULARY = Path(__file__).with_name("orb_vocabulary.npz")  # visual_words.py makes it
+VOCABULARY = Path(__file__).with_name("orb_vocabulary.npz")  # orb_vocabulary.py makes it
 ORB_DESCRIPTOR = "crop-orb"
 # OpenCV splits even a 96 px image's work across its thread pool: no less CPU (~0.35 ms a
 # textured crop either way), but on two loaded cores (load 10) a crop's words took a median

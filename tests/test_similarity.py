@@ -8,6 +8,8 @@ import json
 import re
 import time
 from collections import Counter
+from datetime import timedelta
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -19,17 +21,27 @@ from playwright.sync_api import expect
 
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
+from percept_memory.ingest import backends
 from percept_memory.memory import similarity
 from percept_memory.memory.schema import CLUSTERS, OUTBOX, SCENES
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
 from percept_memory.memory.types import ColorHistogram, FeatureVector, ImageROI
-from percept_memory.memory.types.appearance import crop_descriptors
+from percept_memory.memory.types.appearance import (
+    crop_descriptors,
+    orb_features,
+    vocabulary,
+)
+from percept_memory.memory.types.orb_vocabulary import learn_vocabulary
+from percept_memory.memory.types.visual_words import VisualWords
 from percept_memory.queries.similar import Similarity
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated, served
 from .test_webui import ALL_LOADED, browser, page, shot  # noqa: F401 (fixtures)
+
+KITCHEN_FRAMES = sorted((Path(__file__).resolve().parents[2] / "shared/data/robosherlock/samples/"
+                         "kitchen").glob("rgb_*.png"))
 
 
 @pytest.fixture(scope="module")
@@ -73,17 +85,41 @@ def test_crops_of_the_same_item_look_more_alike_than_other_items():
     keys = ["corn_flakes", "cup", "ketchup", "apple", "milka"]
     described = {key: [crop_descriptors(*kitchen_week.crop(key, "front", rng)) for _ in range(2)]
                  for key in keys}
-    for name in ("crop-colour", "crop-hog"):
-        for key in keys:
+    printed = [key for key in keys if key != "apple"]  # a plain apple has no ORB keypoints
+    for name, among in (("crop-colour", keys), ("crop-hog", keys), ("crop-orb", printed)):
+        for key in among:
             same = described[key][0][name] @ described[key][1][name]
-            others = [described[key][0][name] @ described[o][1][name] for o in keys if o != key]
+            others = [described[key][0][name] @ described[o][1][name] for o in among if o != key]
             assert same > max(others), (name, key)
+
+
+def test_visual_words_are_the_crops_orb_features_on_the_shipped_vocabulary():
+    rng = np.random.default_rng(3)
+    pixels, mask = kitchen_week.crop("corn_flakes", "front", rng)
+    words = VisualWords.of_crop(pixels, mask)
+    assert words.counts.shape == (64,) and words.counts.sum() == len(orb_features(pixels, mask))
+    assert np.allclose(words.descriptors()["crop-orb"], crop_descriptors(pixels, mask)["crop-orb"])
+    assert VisualWords.of_crop(np.full((64, 64, 3), 128, np.uint8)) is None  # nothing to find
+    for foreign in (np.arange(3), np.full(64, -1), np.full(64, 1j), np.full(64, np.nan)):
+        assert not VisualWords(counts=foreign).descriptors()  # another vocabulary's, or none
+    assert "crop-orb" not in crop_descriptors(np.full((64, 64, 3), 128, np.uint8))
+    outside = np.zeros_like(mask)
+    outside[:8, :8] = 255  # keypoints only where the mask is
+    assert VisualWords.of_crop(pixels, outside) is None
+
+
+@pytest.mark.skipif(not KITCHEN_FRAMES, reason="the RoboSherlock sample frame is not beside")
+def test_the_shipped_vocabulary_is_what_its_documented_command_makes():
+    products = sorted((Path(backends.__file__).parent / "products").glob("*.jpg"))
+    learnt = learn_vocabulary([*KITCHEN_FRAMES, *products])
+    assert learnt["words"].shape == (64, 32) and np.array_equal(learnt["words"], vocabulary())
 
 
 # --- the index --------------------------------------------------------------------------------
 
 
-def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path):
+def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path, monkeypatch):
+    monkeypatch.setattr(similarity, "CHUNK", 7)  # read in chunks: the vectors outgrow the rows
     clusters = store.db[CLUSTERS].count_documents({})
     index = SimilarityIndex(store, tmp_path / "index")
     assert index.refresh() == clusters
@@ -116,6 +152,17 @@ def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path):
     for collection in (SCENES, OUTBOX):  # the other tests know the day's scenes only
         store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
     store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
+
+
+def test_a_refresh_reads_only_the_ids_stored_since_the_last(store, day, tmp_path, monkeypatch):
+    monkeypatch.setattr(similarity, "MARGIN", timedelta(0))  # no transaction is open
+    index = SimilarityIndex(store, tmp_path / "index")
+    index.refresh()
+    read = []
+    monkeypatch.setattr(index, "_ids", lambda query: read.extend(
+        SimilarityIndex._ids(index, query)) or read)
+    index.refresh()
+    assert read == []  # not the newest cluster again, nor any stored before the last read
 
 
 def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_path):

@@ -35,6 +35,7 @@ from .curation import Correction, DifferentObject, Rejection, Relabel, SameObjec
 from .hypotheses import Hypothesis, ImageROI, PointCluster, SpatialVolume
 from .raw import Box, CameraInfo, Image, NDArray, PointCloud, Pose, Quaternion, Transform, Vec3
 from .scene import Cluster, Scene
+from .visual_words import VisualWords
 
 __all__ = [
     "Annotation", "Barcode", "Box", "CameraInfo", "Classification", "Cluster", "ColorHistogram",
@@ -43,6 +44,6 @@ __all__ = [
     "Model", "NDArray",
     "PointCloud", "PointCluster", "Pose", "Product", "Quaternion", "Rejection", "Relabel",
     "Relation", "SameObject", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text",
-    "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "WebLookup",
+    "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "VisualWords", "WebLookup",
     "datetime_from_timestamp", "stored_type", "timestamp_from_datetime",
 ]

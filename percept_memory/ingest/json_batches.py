@@ -5,18 +5,14 @@ into them and encoded into documents, about two thirds of the server's CPU per s
 it holding Python's GIL. So a large body goes to worker processes (`JsonWorkers`): each parses
 it and validates and encodes its own contiguous part of the scenes, and hands back only the
 encoded documents (BSON bytes) and the ids; this process stores them in one transaction as
-IngestService does. The body is cut into more parts than there are workers, and this process
-stores each part as soon as it is made while the workers make the next: storing and preparing
-overlap instead of taking turns (on two cores, a third of a request's time). Small bodies are
-done here, where a worker's round trip would cost more.
+IngestService does. Small bodies are done here, where a worker's round trip would cost more.
 """
 
 from __future__ import annotations
 
 import logging
 import multiprocessing
-import secrets
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
@@ -29,11 +25,6 @@ from percept_memory.memory.settings import collect_less
 log = logging.getLogger(__name__)
 
 PARALLEL_BYTES = 1 << 20  # bodies at least this large go to the workers
-PARTS_PER_PROCESS = 2  # each worker makes a part while this process stores the one before
-
-
-class WorkersDied(Exception):
-    """A worker process died (killed, out of memory): the pool starts afresh next time."""
 
 
 class NotScenes(ValueError):
@@ -63,21 +54,13 @@ class Part:
     results: list[docs.SceneIds] = field(default_factory=list)
 
 
-_parsed: tuple = (None, None)  # in a worker: (token, items) of the body it parsed last
-
-
-def prepared_part(body: bytes, token: str, part: int, parts: int, context: Mapping,
+def prepared_part(body: bytes, part: int, parts: int, context: Mapping,
                   threshold: int) -> Part:
     """In a worker: the `part`-th of `parts` contiguous parts of the body's scenes, validated
-    (problems named by the scene's index in the whole body) and encoded. A worker parses each
-    body once (`token` names it), whichever of its parts it makes."""
+    (problems named by the scene's index in the whole body) and encoded."""
     from percept_memory.ingest.service import validate  # (the service imports this module)
 
-    global _parsed
-    if _parsed[0] != token:
-        _parsed = (None, None)  # (the last body's items are not kept while this one parses)
-        _parsed = (token, scenes_of(body))
-    items, screened = _parsed[1]
+    items, screened = scenes_of(body)
     start, stop = part * len(items) // parts, (part + 1) * len(items) // parts
     scenes, problems = [], []
     for index in range(start, stop):
@@ -99,32 +82,31 @@ class JsonWorkers:
         self.processes = processes
         self._pool: ProcessPoolExecutor | None = None
 
-    def parts(self, body: bytes, context: Mapping, threshold: int) -> Iterator[Part]:
-        """The documents and ids of the body's scenes, a part at a time in the body's order,
-        each as soon as it is made. Raises an IngestError naming every problem of the whole
-        body (before any part with a problem is given), NotScenes, or WorkersDied."""
-        pool = self._pool = self._pool or ProcessPoolExecutor(
-            self.processes, mp_context=multiprocessing.get_context("spawn"),
-            initializer=collect_less)
-        token, count = secrets.token_hex(8), self.processes * PARTS_PER_PROCESS
-        futures = []
+    def prepared(self, body: bytes, context: Mapping, threshold: int) -> tuple[
+            docs.Documents, list[docs.SceneIds]] | None:
+        """The documents and ids of the body's scenes, prepared by the workers, a part each;
+        an IngestError naming every problem, or NotScenes. None when a worker died (killed,
+        out of memory): the pool starts afresh next time, and the caller does it itself."""
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(
+                self.processes, mp_context=multiprocessing.get_context("spawn"),
+                initializer=collect_less)
         try:
-            futures = [pool.submit(prepared_part, body, token, part, count, dict(context),
-                                   threshold) for part in range(count)]
-            for index, future in enumerate(futures):
-                part = future.result()
-                if part.problems:
-                    raise IngestError(part.problems + [problem for later in futures[index + 1:]
-                                                       for problem in later.result().problems])
-                if part.results:
-                    yield part
+            futures = [self._pool.submit(prepared_part, body, part, self.processes,
+                                         dict(context), threshold)
+                       for part in range(self.processes)]
+            parts: list[Part] = [future.result() for future in futures]
         except BrokenProcessPool:
             log.warning("an ingest worker process died; starting them afresh")
             self.close()
-            raise WorkersDied from None
-        finally:
-            for future in futures:
-                future.cancel()
+            return None
+        problems = [problem for part in parts for problem in part.problems]
+        if problems:
+            raise IngestError(problems)
+        written = docs.Documents()
+        for part in parts:
+            written.add(part.documents)
+        return written, [ids for part in parts for ids in part.results]
 
     def close(self) -> None:
         if self._pool is not None:

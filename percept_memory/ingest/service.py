@@ -16,7 +16,6 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import closing
 from dataclasses import dataclass, field
 from itertools import islice
 from typing import Any, NamedTuple
@@ -25,12 +24,7 @@ from pydantic import ValidationError
 
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
-from percept_memory.ingest.json_batches import (
-    PARALLEL_BYTES,
-    JsonWorkers,
-    WorkersDied,
-    scenes_of,
-)
+from percept_memory.ingest.json_batches import PARALLEL_BYTES, JsonWorkers, scenes_of
 from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.catalogue.stage import CatalogueStage
 from percept_memory.memory.consolidation import Consolidation
@@ -103,32 +97,15 @@ class IngestService:
         with self.pipeline.ingesting():
             results = None
             if self.json_workers is not None and len(body) >= PARALLEL_BYTES:
-                results = self._made_by_workers(body)
+                made = self.json_workers.prepared(body, self.limits, self.store.gridfs_threshold)
+                if made is not None and self.store.put_documents(made[0]):
+                    results = self._stored(made[1])
             if results is None:
                 items, screened = scenes_of(body)
                 results = self.ingest_batch(items, screened=screened)
         if wait is not None:
             self.settled(results, wait)
         return results
-
-    def _made_by_workers(self, body: bytes) -> list[SceneIds] | None:
-        """The body's scenes prepared by the worker processes and stored, each part as it
-        comes, in one transaction; None (nothing stored) when a worker died or what they made
-        cannot be stored as made."""
-        made: list[SceneIds] = []
-
-        def documents():
-            for part in self.json_workers.parts(body, self.limits, self.store.gridfs_threshold):
-                made.extend(part.results)
-                yield part.documents
-
-        with closing(documents()) as parts:
-            try:
-                if not self.store.put_documents(parts):
-                    return None
-            except WorkersDied:
-                return None
-        return self._stored(made)
 
     def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
                wait: float | None = None) -> SceneIds:

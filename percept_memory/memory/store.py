@@ -270,30 +270,17 @@ class MemoryStore(StoreBase):
         self._catalogue(whole.documents)
         return whole.results
 
-    def put_documents(self, parts: Iterable[docs.Documents]) -> bool:
+    def put_documents(self, written: docs.Documents) -> bool:
         """Store the documents of new scenes prepared elsewhere (ingest's worker processes)
-        in one transaction, each part as it comes (its maker prepares the next meanwhile):
-        True. False, and nothing written, when the server refuses them as they are (a scene
-        stored before, a write too large): put_scenes sorts those out. Whatever `parts`
-        raises aborts the transaction and is raised."""
-        source, taken = iter(parts), []
-
-        def insert(session):
-            for part in taken:  # a transaction tried again starts from the first part
-                self._insert(part, session)
-            for part in source:
-                taken.append(part)
-                self._insert(part, session)
-
+        in one transaction: True. False, and nothing written, when the server refuses them as
+        they are (a scene stored before, a write too large): put_scenes sorts those out."""
         try:
-            self._transaction(insert, retry_unreachable=False)
+            self._transaction(lambda session: self._insert(written, session),
+                              retry_unreachable=False)
         except (DocumentTooLarge, OperationFailure) as error:
             if too_large(error) or transaction_too_large(error) or duplicate_key(error):
                 return False
             raise
-        written = docs.Documents()
-        for part in taken:
-            written.add(part)
         self._catalogue(written)
         return True
 

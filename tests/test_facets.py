@@ -5,6 +5,7 @@ a collection scan), capped; and the scene log's histogram over time (webui/histo
 from __future__ import annotations
 
 import re
+from contextlib import contextmanager
 from urllib.parse import parse_qsl, urlsplit
 
 import pytest
@@ -166,7 +167,10 @@ def test_no_scenes_no_histogram(memory):
     assert histogram.scene_histogram(memory.scenes, {"robot": "nobody"}) is None
 
 
-def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
+@contextmanager
+def tiagos_scene_log(memory):
+    """Robot tiago's scene log in Chromium with its histogram's bars drawn (tab, bars); the
+    page must keep its own Content-Security-Policy."""
     app = create_app(memory, Settings(consolidator=False))
     with served(app) as url, sync_playwright() as playwright:
         browser = launch(playwright)
@@ -174,6 +178,13 @@ def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
         tab.goto(f"{url}/scenes?robot=tiago")
         bars = tab.locator("figure.histogram a.bar")
         expect(bars).to_have_count(histogram.BARS)
+        yield tab, bars
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
+    with tiagos_scene_log(memory) as (tab, bars):
         fullest = max(range(histogram.BARS), key=lambda i: int(
             bars.nth(i).get_attribute("aria-label").split()[0]))
         scenes = int(bars.nth(fullest).get_attribute("aria-label").split()[0])
@@ -184,19 +195,11 @@ def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
             tab.keyboard.press("Enter")
         assert "robot=tiago" in tab.url and "since=" in tab.url and "until=" in tab.url
         expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
 
 
 @pytest.mark.parametrize("leftwards", [False, True])
 def test_dragging_across_the_bars_sets_the_time_range_to_them(memory, leftwards):
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
-        tab.goto(f"{url}/scenes?robot=tiago")
-        bars = tab.locator("figure.histogram a.bar")
-        expect(bars).to_have_count(histogram.BARS)
+    with tiagos_scene_log(memory) as (tab, bars):
         low, high = 3, 9
         spans = [dict(parse_qsl(urlsplit(bars.nth(i).get_attribute("href")).query))
                  for i in (low, high)]
@@ -221,8 +224,6 @@ def test_dragging_across_the_bars_sets_the_time_range_to_them(memory, leftwards)
                              choices_of(memory)["type"])
         assert memory.scenes.count_documents(query) == scenes
         expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
 
 
 def test_a_click_on_one_bar_still_follows_its_link(memory):
@@ -236,5 +237,3 @@ def test_a_click_on_one_bar_still_follows_its_link(memory):
         with tab.expect_navigation():
             bar.locator("rect.hit").click()
         assert tab.url == url + href
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"

@@ -21,7 +21,9 @@ each stage's writes land exactly once or not at all, whoever dies when.
   for QUIET_S (a client's turn between two requests is shorter), at most YIELD_S, and takes
   one scene at a time until ingest has paused for BUSY_S. Everything is still consolidated,
   in order, exactly once; a burst of ingest is just not slowed by it (a robot that posts a
-  scene every 100 ms leaves it the gaps), and it catches up after the burst.
+  scene every 100 ms leaves it the gaps), and it catches up after the burst. A caller that
+  waits for the belief (`wait`) ends the pause for quiet: it wants its scene consolidated
+  now, and is woken by the commit rather than by its next poll.
 - Late scenes: a scene older than the newest consolidated scene of its map (it arrived late,
   or was held and retried) rebuilds the map: the belief stages forget the map and every scene
   of the map is queued for them again. So the belief always equals what consolidating the
@@ -108,6 +110,8 @@ class Pipeline:
         self._ingest = threading.Condition()
         self._storing = 0  # batches being stored in this process now
         self._stored_at = -BUSY_S  # when the last one was (time.monotonic)
+        self._waiting = 0  # callers of `wait` in this process now
+        self._committed = threading.Event()  # set by each batch this pipeline commits
 
     # --- running ---------------------------------------------------------------------------
 
@@ -144,14 +148,22 @@ class Pipeline:
         """Until these scenes went through (True) or the timeout passed (False). Works on them
         here unless a background thread of this pipeline does."""
         deadline = time.monotonic() + timeout
+        with self._ingest:  # someone waits for the belief: no pause for ingest to go quiet
+            self._waiting += 1
+            self._ingest.notify_all()
         self._wake.set()
-        while self.pending(scene_ids):
-            if time.monotonic() >= deadline:
-                return False
-            if self._thread is None and self.run_once():
-                continue
-            time.sleep(min(0.01, max(deadline - time.monotonic(), 0)))
-        return True
+        try:
+            while self.pending(scene_ids):
+                if time.monotonic() >= deadline:
+                    return False
+                if self._thread is None and self.run_once():
+                    continue
+                self._committed.clear()
+                self._committed.wait(min(0.01, max(deadline - time.monotonic(), 0)))
+            return True
+        finally:
+            with self._ingest:
+                self._waiting -= 1
 
     def start(self) -> Pipeline:
         """Run in a background thread until stop()."""
@@ -209,6 +221,8 @@ class Pipeline:
         batch is being stored)."""
         if self._storing:
             return float("inf")
+        if self._waiting:
+            return 0.0
         return QUIET_S - (time.monotonic() - self._stored_at)
 
     def run_forever(self) -> None:
@@ -306,6 +320,7 @@ class Pipeline:
             self.outbox.delete_many({"_id": {"$in": ids}}, session=session)
 
         self.store._transaction(work)
+        self._committed.set()
 
     def _failed(self, entry: dict, error: Exception) -> None:
         attempts = entry["attempts"] + 1

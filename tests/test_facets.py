@@ -10,7 +10,7 @@ from urllib.parse import parse_qsl, urlsplit
 
 import pytest
 from fastapi.testclient import TestClient
-from playwright.sync_api import expect, sync_playwright
+from playwright.sync_api import expect
 
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
@@ -20,9 +20,9 @@ from percept_memory.webui import facets, histogram
 from percept_memory.webui.app import create_app
 from percept_memory.webui.scene_log import CHOICES, scene_filter
 
-from .conftest import LOCAL, ingest_consolidated, served
+from .conftest import LOCAL, ingest_consolidated
 from .test_webui import SCREENSHOTS
-from .test_webui_curation import launch, watched
+from .test_webui_curation import in_chromium
 
 
 @pytest.fixture(scope="module")
@@ -171,16 +171,11 @@ def test_no_scenes_no_histogram(memory):
 def tiagos_scene_log(memory):
     """Robot tiago's scene log in Chromium with its histogram's bars drawn (tab, bars); the
     page must keep its own Content-Security-Policy."""
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/scenes?robot=tiago")
         bars = tab.locator("figure.histogram a.bar")
         expect(bars).to_have_count(histogram.BARS)
         yield tab, bars
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
 
 
 def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
@@ -227,10 +222,7 @@ def test_dragging_across_the_bars_sets_the_time_range_to_them(memory, leftwards)
 
 
 def test_a_click_on_one_bar_still_follows_its_link(memory):
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/scenes?robot=tiago")
         bar = tab.locator("figure.histogram a.bar").nth(5)
         href = bar.get_attribute("href")

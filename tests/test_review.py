@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import pytest
 from fastapi.testclient import TestClient
-from playwright.sync_api import expect, sync_playwright
+from playwright.sync_api import expect
 
 from percept_memory.demo import kitchen_week
 from percept_memory.memory import curation
@@ -17,9 +17,9 @@ from percept_memory.memory.types import Classification, Rejection, Relabel
 from percept_memory.queries.review import review_queue
 from percept_memory.webui.app import create_app
 
-from .conftest import LOCAL, ingest_consolidated, served
+from .conftest import LOCAL, ingest_consolidated
 from .test_webui import SCREENSHOTS
-from .test_webui_curation import launch, watched
+from .test_webui_curation import in_chromium
 
 
 @pytest.fixture(scope="module")
@@ -80,10 +80,7 @@ def test_the_json_twin_answers_the_same_and_refuses_bad_windows(memory, disputed
 def test_twenty_labels_are_corrected_by_keyboard_from_the_queue(memory, disputed):
     queue = review_queue(memory, shown=20)
     assert len(queue.doubts) == 20
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/review?shown=20")
         tab.locator("#author").fill("ana")
         SCREENSHOTS.mkdir(parents=True, exist_ok=True)
@@ -99,8 +96,6 @@ def test_twenty_labels_are_corrected_by_keyboard_from_the_queue(memory, disputed
                 expect(rows.nth(number + 1).locator("input[name=label]")).to_be_focused()
         tab.reload()
         expect(tab.locator("strong.fixed")).to_have_text(str(queue.fixed + 20))
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
     labels = {memory.get_cluster(d.cluster_id).annotations[-1].class_name for d in queue.doubts}
     assert labels == {f"thing {n}" for n in range(20)}
     assert all(isinstance(memory.get_cluster(d.cluster_id).annotations[-1], Relabel)
@@ -109,10 +104,7 @@ def test_twenty_labels_are_corrected_by_keyboard_from_the_queue(memory, disputed
 
 def test_a_detection_is_rejected_from_the_queue_by_keyboard(memory, disputed):
     queue = review_queue(memory, shown=3)
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/review?shown=3")
         tab.locator("#author").fill("ana")
         rows = tab.locator("table.review tbody tr")
@@ -122,7 +114,5 @@ def test_a_detection_is_rejected_from_the_queue_by_keyboard(memory, disputed):
         tab.keyboard.press("Enter")
         expect(rows.first.locator("form.reject [role=status]")).to_have_text("Saved.")
         expect(rows.nth(1).locator("input[name=label]")).to_be_focused()
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
     said = memory.get_cluster(queue.doubts[0].cluster_id).annotations[-1]
     assert isinstance(said, Rejection) and said.reason == "a reflection"

@@ -33,6 +33,7 @@ from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ROBOSHERLOCK, served
 from .test_webui import CHROMIUM
+from .test_webui_curation import launch, watched
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "screenshots"
 HOUR = 3600 * 10**9
@@ -219,12 +220,8 @@ def tab(store, lab):
     assert CHROMIUM.exists(), "install Debian's chromium: apt-get install -y chromium"
     with served(create_app(store, Settings(consolidator=False))) as url, \
             sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=[
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking"])
-        page = browser.new_page(viewport={"width": 1280, "height": 900})
-        blocked: list[str] = []
-        page.on("console", lambda m: blocked.append(m.text) if "Content Security" in m.text
-                else None)
+        browser = launch(playwright)
+        page, blocked = watched(browser)
         page.base = url
         yield page
         assert not blocked, blocked

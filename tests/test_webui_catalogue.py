@@ -11,7 +11,8 @@ from percept_memory.queries import catalogue
 from percept_memory.webui.app import create_app
 
 from .conftest import ingest_consolidated, served
-from .test_webui import ALL_LOADED, CHROMIUM, SCREENSHOTS
+from .test_webui import ALL_LOADED, SCREENSHOTS
+from .test_webui_curation import launch, watched
 
 
 @pytest.fixture(scope="module")
@@ -24,12 +25,8 @@ def url(store):
 def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):
     entries = catalogue.entries(store)
     with sync_playwright() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=[
-            "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking"])
-        tab = browser.new_page(viewport={"width": 1280, "height": 900})
-        blocked: list[str] = []
-        tab.on("console", lambda m: blocked.append(m.text) if "Content Security" in m.text
-               else None)
+        browser = launch(playwright)
+        tab, blocked = watched(browser)
         tab.goto(f"{url}/")
         tab.get_by_role("link", name="Catalogue").click()
         tab.wait_for_load_state("load")

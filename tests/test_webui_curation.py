@@ -4,6 +4,8 @@ cluster, object and audit pages correct, show and undo."""
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
 import pytest
 from bson import ObjectId
 from fastapi.testclient import TestClient
@@ -155,12 +157,22 @@ def watched(browser):
     return tab, blocked
 
 
-def test_a_cluster_is_relabelled_rejected_and_undone_by_keyboard(memory):
-    (doc,) = clusters_of_objects(memory, 1, skip=100)
-    app = create_app(memory, Settings(consolidator=False))
+@contextmanager
+def in_chromium(memory, settings: Settings | None = None):
+    """The app served on the memory and a Chromium tab for it: (tab, url). Its pages must keep
+    their own Content-Security-Policy."""
+    app = create_app(memory, settings or Settings(consolidator=False))
     with served(app) as url, sync_playwright() as playwright:
         browser = launch(playwright)
         tab, blocked = watched(browser)
+        yield tab, url
+        browser.close()
+    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
+
+
+def test_a_cluster_is_relabelled_rejected_and_undone_by_keyboard(memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=100)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/clusters/{doc['_id']}")
         tab.locator("#author").focus()
         tab.keyboard.type("ana")
@@ -189,16 +201,11 @@ def test_a_cluster_is_relabelled_rejected_and_undone_by_keyboard(memory):
         expect(rows.first).to_contain_text("undo of")
         expect(rows.nth(1)).to_contain_text("by ana")  # the rejection, undone by ana
         tab.screenshot(path=str(SCREENSHOTS / "corrections.png"), full_page=False)
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
 
 
 def test_with_a_token_the_page_asks_for_it_once(memory):
     (doc,) = clusters_of_objects(memory, 1, skip=120)
-    app = create_app(memory, Settings(token="s3cret", consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory, Settings(token="s3cret", consolidator=False)) as (tab, url):
         tab.goto(f"{url}/objects/{doc['object_id']}")
         tab.locator("#author").fill("ana")
         tab.locator("form.relabel input[name=label]").focus()
@@ -211,8 +218,6 @@ def test_with_a_token_the_page_asks_for_it_once(memory):
         with tab.expect_navigation():
             tab.keyboard.press("Enter")
         expect(tab.locator("h1")).to_contain_text("fruit bowl")
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
 
 
 def test_a_cluster_with_a_ground_truth_shows_it_beside_the_predictions(client, memory):
@@ -254,10 +259,7 @@ def test_two_objects_are_merged_over_http_and_a_bad_merge_is_refused(client, mem
 def test_an_object_is_merged_from_its_page_by_keyboard(memory):
     cluster = memory.clusters.find_one({"annotations.author": {"$exists": False},
                                         "object_id": {"$ne": None}}, sort=[("_id", -1)])
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/objects/{cluster['object_id']}")
         tab.locator("#author").fill("ana")
         choice = tab.locator("form.merge select[name=other]")
@@ -267,8 +269,6 @@ def test_an_object_is_merged_from_its_page_by_keyboard(memory):
         tab.keyboard.press("Tab")  # to Merge
         with tab.expect_navigation():
             tab.keyboard.press("Enter")
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
     (row,) = curation.audit(memory, 1)
     assert row["kind"] == "merge" and row["author"] == "ana"
     other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
@@ -314,10 +314,7 @@ def test_an_object_is_split_over_http_and_a_bad_split_is_refused(client, memory)
 
 def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(memory):
     obj = often_seen(memory)
-    app = create_app(memory, Settings(consolidator=False))
-    with served(app) as url, sync_playwright() as playwright:
-        browser = launch(playwright)
-        tab, blocked = watched(browser)
+    with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/objects/{obj['_id']}")
         tab.locator("#author").fill("ana")
         boxes = tab.locator("form.split input[name=clusters]")
@@ -339,8 +336,6 @@ def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(m
         tab.goto(f"{url}/corrections")
         expect(tab.locator("table.audit tbody tr").first).to_contain_text(
             "another object than an earlier cluster")
-        browser.close()
-    assert not blocked, f"the page broke its own Content-Security-Policy: {blocked}"
     rows = curation.audit(memory, 2)
     assert {r["kind"] for r in rows} == {"split"} and {r["author"] for r in rows} == {"ana"}
     anchor = rows[0]["apart_from"]

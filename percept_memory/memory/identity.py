@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Collection, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from enum import StrEnum
 from functools import cache, cached_property
 from typing import Any
@@ -70,11 +70,15 @@ class Parameters:
     # levels (bench/tune_identity.py, seed 1; bench/identity.py scores seed 0); prior_move
     # and prior_appear since on bench/belief.py's tune seeds (1001-1003, never reported).
     prior_move: float = 0.06  # odds that an object moved between two looks at it
-    prior_newview: float = 0.3032  # odds that the same place shows another side of it
+    # odds that the same place shows another side of it; and of "an object in view is not
+    # there any more": both re-tuned on bench/belief.py's tune seeds once the nearness of
+    # different objects was learnt with its lower tail (DIFFERENT), which no longer makes any
+    # place within 0.15 m e^12 times "the same" (were 0.3032 and 2.575)
+    prior_newview: float = 1.0
     # odds of "a new object" against a known one: lower since the look odds of different
     # objects are learnt from scenes (bench/belief.py, tune seeds; was 4.1 on identity.py's)
     prior_appear: float = 0.3
-    prior_gone: float = 2.575  # odds of "an object in view is not there any more"
+    prior_gone: float = 0.25
     # looks-the-same odds beyond which another known object is a lookalike (Decision): high,
     # or a crowded world of look-alikes merges distinct objects (bench/belief.py --crowded)
     lookalike_odds: float = 1000.0
@@ -385,7 +389,7 @@ class Cue:
 # How alike different objects look is learnt from the pairs of clusters of each scene (sure
 # to be different objects), whose lower tail a histogram follows; how near another object
 # lies from its places is learnt from the decisions, a Gamma (_learn).
-DIFFERENT: dict[str, type] = {"look": Histogram, "place": Spread}
+DIFFERENT: dict[str, type] = {"look": Histogram, "place": Histogram}
 
 
 @dataclass
@@ -452,10 +456,18 @@ class Calibration:
 
     @classmethod
     def from_document(cls, doc: dict) -> Calibration:
-        """(A calibration stored before the dwell time was learnt starts from its prior.)"""
-        return cls(**{name: Cue(Spread(**doc[name]["same"]), kind(**doc[name]["different"]))
+        """(What a calibration stored by an older release learnt in another form, the dwell
+        time or a spread now learnt as a histogram, starts from its prior.)"""
+        prior = cls.prior(Parameters())
+
+        def different(name: str, kind: type):
+            stored = doc[name]["different"]
+            return (kind(**stored) if set(stored) == {f.name for f in fields(kind)}
+                    else getattr(prior, name).different)
+
+        return cls(**{name: Cue(Spread(**doc[name]["same"]), different(name, kind))
                       for name, kind in DIFFERENT.items()},
-                   dwell=Dwell(**doc["dwell"]) if "dwell" in doc else Dwell.prior(Parameters()))
+                   dwell=Dwell(**doc["dwell"]) if "dwell" in doc else prior.dwell)
 
 
 def explanations(look: float, place: float, in_view: bool, params: Parameters,
@@ -473,7 +485,10 @@ def explanations(look: float, place: float, in_view: bool, params: Parameters,
     return {
         Explanation.STAY: look * place * staying,
         Explanation.MOVE: move,
-        Explanation.NEWVIEW: place * params.prior_newview * max(other, 1.0) * staying,
+        # turned to a side seen before: as much likelier as that side fits better than the
+        # last one (a look kept twice is no other side to turn to)
+        Explanation.NEWVIEW: place * params.prior_newview * max(other / max(look, 1.0), 1.0)
+        * staying,
     }
 
 
@@ -625,9 +640,8 @@ def _learn(calibration: Calibration, decisions: list[Decision], assigned: dict[i
                 odds = calibration.place.odds(places[i, j]) / params.prior_move
                 calibration.place.same.learn(place, memory, odds / (1 + odds))
         if decision.probability >= params.confident:
-            for k in np.flatnonzero(~np.isnan(place_u[i])):
-                if k != j:
-                    calibration.place.different.learn(float(place_u[i, k]), memory)
+            others = np.flatnonzero(~np.isnan(place_u[i]))
+            calibration.place.different.learn_all(place_u[i, others[others != j]], memory)
     alike = surprise(looked_apart[np.triu_indices_from(looked_apart, 1)])
     calibration.look.different.learn_all(alike[~np.isnan(alike)], memory)
 

@@ -53,11 +53,14 @@ each truth row; a nudge counts as a move whatever its size. Beyond it:
   takes another object's id, that object counts as "appear" when next seen, and a memory
   that knows it again is scored wrong; on tune seed 1001 at sigma 0.025, 103 of its 131
   "appear" observations were of an object and side observed before);
-- object ids per true object: object ids the memory made / real objects it observed; and
-  objects at the end per true object (ids found to be one object remembered twice merge);
+- object ids per true object: object ids the memory made / real objects it observed, beside
+  the ids the strict truth itself asks for (a new one per side first seen after a move while
+  turned); and objects at the end per true object (ids found to be one object remembered
+  twice merge);
 - where-is: for the sampled objects on a table that were observed before, whether the answer
   names the right table (a "disappeared" object is wrong; also given for those still on the
-  table they were last seen on, which a memory could know), the position error (2D), and for
+  table they were last seen on, which a memory could know, and their share of all asked:
+  the best any memory can score), the position error (2D), and for
   those not moved since their last observation the share within 0.1 m;
 - time per scene: the POST with wait=belief as the client sees it (p50, p95), and p95 by
   objects in the map's memory (buckets of 25; target at >= 100 objects, which the 15 objects
@@ -527,6 +530,10 @@ def summary(noise: float, score: Score, extra: Extra) -> dict[str, Any]:
         "object_ids": extra.object_ids,
         "true_objects_seen": extra.true_objects,
         "object_ids_per_true_object": None if ratio is None else round(ratio, 2),
+        # what a memory following the strict truth would make: a new id per object, and per
+        # side first seen after a move while turned (so above 1 by the truth itself)
+        "object_ids_per_true_object_by_the_truth": round(
+            extra.never_observed[1] / extra.true_objects, 2) if extra.true_objects else None,
         "objects_at_end": extra.objects_at_end,
         "objects_at_end_per_true_object": round(extra.objects_at_end / extra.true_objects, 2)
         if extra.true_objects else None,
@@ -534,6 +541,9 @@ def summary(noise: float, score: Score, extra: Extra) -> dict[str, Any]:
                      "right_table_percent": share(extra.right_table),
                      # on the table it was last seen on: what any memory could know
                      "on_last_seen_table_asked": extra.right_table_knowable[1],
+                     # the best any memory can do: right on exactly those
+                     "right_table_at_best_percent": share([extra.right_table_knowable[1],
+                                                           extra.right_table[1]]),
                      "on_last_seen_table_right_percent": share(extra.right_table_knowable),
                      "position_error_m": {"p50": p(extra.errors_m, 50),
                                           "p95": p(extra.errors_m, 95)},
@@ -555,8 +565,11 @@ def headline(result: dict[str, Any]) -> dict[str, float | None]:
                 result["recall_old_clusters"].values()))), 2),
             "association_strict": result["association_accuracy_strict"],
             "object_ids_per_true_object": result["object_ids_per_true_object"],
+            "object_ids_per_true_object_by_the_truth":
+                result["object_ids_per_true_object_by_the_truth"],
             "objects_at_end_per_true_object": result["objects_at_end_per_true_object"],
             "where_is_right_table": result["where_is"]["right_table_percent"],
+            "where_is_right_table_at_best": result["where_is"]["right_table_at_best_percent"],
             "unmoved_within_0.1m": result["where_is"]["unmoved_within_0.1m_percent"],
             "p95_ms": result["time_per_scene_http"]["p95_ms"]}
 

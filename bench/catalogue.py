@@ -273,8 +273,11 @@ def identity_protocol_entries(scenes: int, seed: int, noise: float) -> dict:
     """Blodow's identity protocol as bench/belief.py runs it (one continuous world: 15 objects
     of two sides of random colour, put, removed, moved, nudged and turned on 4 tables, one table
     looked at per scene; clusters with a location and an RGB histogram) through the ingest
-    service and the memory pipeline: the catalogue's entries against the real objects. Two
-    sides of one object are one entry only once a track saw it turn."""
+    service and the memory pipeline: the catalogue's entries against the real objects (an
+    entry's object: its models' first observations'). Two sides of one object are one entry
+    only once a track saw it turn; a track identity made of two objects gives the catalogue a
+    model of both, so it also reports the belief objects holding several real ones and the
+    share of observations that are not their belief object's (its most observed real one)."""
     from belief import LongWorld, histogram, table_name
     from identity import ACTIONS, LIMITS, OBJECTS, TABLES, VIEW_JITTER, inside, table_of
     from scratch import scratch_store
@@ -315,8 +318,16 @@ def identity_protocol_entries(scenes: int, seed: int, noise: float) -> dict:
         for model in store.db["catalogue"].find({}, {"entry": 1}):
             real_of_entry.setdefault(model["entry"], set()).add(real_of[model["_id"]])
         real = set(real_of.values())
+        reals_of_object: dict = {}  # what the catalogue learns from: identity's tracks
+        for doc in store.clusters.find({"_id": {"$in": list(real_of)}}, {"object_id": 1}):
+            reals_of_object.setdefault(doc.get("object_id"), Counter())[real_of[doc["_id"]]] += 1
         return {"scenes": scenes, "seed": seed, "noise": noise, "real_objects": len(real),
                 "belief_objects": store.db["objects"].count_documents({}),
+                "belief_objects_mixing_objects": sum(len(r) > 1
+                                                     for r in reals_of_object.values()),
+                "observations_not_their_belief_objects_own": round(sum(
+                    r.total() - max(r.values()) for r in reals_of_object.values())
+                    / len(real_of), 3),
                 "entries": len(real_of_entry),
                 "entries_per_real_object": round(len(real_of_entry) / len(real), 2),
                 "entries_mixing_objects": sum(len(r) > 1 for r in real_of_entry.values())}

@@ -87,6 +87,22 @@ def test_a_new_view_merges_two_duplicates():
     assert memory.history == [Change("merged", (1, 2), (1,))]
 
 
+def test_links_weigh_over_the_modalities_the_catalogue_holds():
+    """max_modalities of eq. 5.7 is, unless set, modalities_number(M) of the models known (as
+    in eq. 5.12): two models agreeing in all their modalities are alike however many kinds of
+    evidence the program knows, and a kind of evidence no model holds any more weighs nothing."""
+    memory = learner()
+    memory.learn(1, seq(1, 2, 3, 4), 4)
+    memory.learn(2, seq(3, 4, 5, 6), 4)  # v and v-v: 2 modalities
+    assert memory.edges[2] == {1: normalized_jmi(seq(3, 4, 5, 6), seq(1, 2, 3, 4), 2)}
+    memory.learn(3, GraphOfViews.of_sequence([["w:1"], ["w:2"]]), 2)  # and w, w-w
+    memory.learn(4, seq(5, 6, 7, 8), 4)
+    assert memory.edges[4] == {2: normalized_jmi(seq(5, 6, 7, 8), seq(3, 4, 5, 6), 4)}
+    memory.forget(3)
+    memory.learn(5, seq(7, 8, 9, 10), 4)
+    assert memory.edges[5] == {4: normalized_jmi(seq(7, 8, 9, 10), seq(5, 6, 7, 8), 2)}
+
+
 def test_a_model_included_in_another_is_discarded():
     memory = learner()
     memory.learn(1, seq(*range(0, 20)), 20)

@@ -19,7 +19,7 @@ from .conftest import ingest_consolidated
 
 @pytest.fixture(scope="module")
 def week(store):
-    week = kitchen_week.generate(days=3)  # the third brings entries that merge and split
+    week = kitchen_week.generate(days=4)  # the fourth brings entries that merge
     ingest_consolidated(store, week.scenes)
     truth = {cluster.id: week.truth.object_at(i, j)
              for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
@@ -135,7 +135,7 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
         assert all({link["a"], link["b"]} <= models for link in entry["graph"]["links"])
     changes = client.get("/api/catalogue/history", params={"map": "kitchen-week"}).json()
     assert changes["changes"] == catalogue.history(store, "kitchen-week")
-    assert changes["changes"], "three days of the kitchen merge or split some entries"
+    assert changes["changes"], "four days of the kitchen merge or split some entries"
     times = [c["time"] for c in changes["changes"]]
     assert times == sorted(times, reverse=True)
     for change in changes["changes"]:

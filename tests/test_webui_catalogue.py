@@ -17,7 +17,7 @@ from .test_webui_curation import launch, watched
 
 @pytest.fixture(scope="module")
 def url(store):
-    ingest_consolidated(store, kitchen_week.generate(days=3).scenes)
+    ingest_consolidated(store, kitchen_week.generate(days=4).scenes)
     with served(create_app(store, Settings())) as url:
         yield url
 
@@ -42,7 +42,7 @@ def test_the_catalogue_page_shows_every_entry_with_its_views(url, store):
             assert drawing.locator("circle").count() == entry["models"]
             assert drawing.locator("line").count() == len(entry["graph"]["links"])
         changes = catalogue.history(store, limit=30)
-        assert changes, "three days of the kitchen merge or split some entries"
+        assert changes, "four days of the kitchen merge or split some entries"
         items = tab.locator("ol.changes li")
         assert items.count() == len(changes)
         for change, item in zip(changes, items.all(), strict=True):

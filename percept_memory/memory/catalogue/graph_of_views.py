@@ -87,6 +87,10 @@ class GraphOfViews:
     def nodes(self) -> frozenset[str]:
         return frozenset(e for e in self.elements if EDGE not in e)
 
+    def kinds(self) -> set[str]:
+        """The modalities present (modalities_number(G) is their number, 5.3.3)."""
+        return set(map(modality, self.elements))
+
     def modalities(self) -> Counter:
         """number_of(t, G) for every type t present (5.3.3)."""
         return Counter(modality(e) for e in self.elements)

@@ -35,7 +35,8 @@ class Parameters:
     max_singletons: int = 30
     compared_singletons: int = 30  # the singletons a new model is compared with, most alike first
     recognised: float = 0.95  # classification score "near 1": only its cluster is updated
-    max_modalities: int = 2  # of the whole system, normalising the similarity (eq. 5.7)
+    # normalising the similarity (eq. 5.7); None: the modalities of the models known (below)
+    max_modalities: int | None = None
     common_element: int = 32  # held by more clusters than this, it finds no candidates
 
     @property
@@ -75,6 +76,7 @@ class Learner:
         self._union: dict[Hashable, Counter] = {}  # cluster -> element -> models holding it
         self._index: dict[str, set[Hashable]] = {}  # element -> clusters whose union holds it
         self._dissolved: set[Hashable] = set()  # clusters to recompute
+        self._modalities: Counter = Counter()  # modality -> models holding it
         self.changed: set[Hashable] = set()  # models added, removed, relinked or moved
         self.history: list[Change] = []  # entries merged or split, oldest first
         self._before: dict[Hashable, Hashable] = {}  # see _noting_changes
@@ -172,11 +174,20 @@ class Learner:
             if pair.inclusion > p.high_inclusion:  # g adds nothing to m
                 touched |= self._absorb(g, m)
                 return touched
-            weight = pair.normalized_jmi(p.max_modalities)
+            weight = self._similarity(pair)
             if weight > p.low_similarity:
                 self._link(g, m, weight)
                 touched |= {m} | self._filter_edges(g) | self._filter_edges(m)
         return touched
+
+    def _similarity(self, pair: Comparison) -> float:
+        """normalized_jmi (eq. 5.7) over max_modalities, "the maximum number of modalities
+        considered in the system": unless set, those present in the models known, as
+        modalities consensus (eq. 5.12) counts modalities_number(M). A home's perception
+        produces a few of the kinds of evidence registered: normalised by all of them (77
+        with their pairs), two models agreeing in all their modalities, an RGB histogram's
+        bins and their changes, weighed 2/77 and never linked."""
+        return pair.normalized_jmi(self.params.max_modalities or len(self._modalities))
 
     def _absorb(self, gone: Hashable, into: Hashable) -> set:
         """Discard a model; its neighbours become the including model's, then filtered (lines
@@ -185,8 +196,8 @@ class Learner:
         (copied, it made corrupted clusters at 2 of 20 tuning seeds of bench/catalogue.py)."""
         for other in self.edges[gone]:
             if other != into and other not in self.edges[into]:
-                weight = Comparison(self.models[into].graph, self.models[other].graph
-                                    ).normalized_jmi(self.params.max_modalities)
+                weight = self._similarity(Comparison(self.models[into].graph,
+                                                     self.models[other].graph))
                 if weight > self.params.low_similarity:
                     self._link(into, other, weight)
         touched = self._remove(gone)
@@ -282,6 +293,7 @@ class Learner:
 
     def _add(self, m: Hashable, model: PartialModel) -> None:
         self.models[m] = model
+        self._modalities.update(model.graph.kinds())
         self.edges[m] = {}
         self.changed.add(m)
 
@@ -299,6 +311,8 @@ class Learner:
             else:
                 self._dissolved.discard(cluster)
                 self._drop_cluster(cluster)
+        self._modalities.subtract(self.models[m].graph.kinds())
+        self._modalities += Counter()  # the modalities no model holds any more: gone
         del self.models[m], self.edges[m]
         self.changed.add(m)
         return neighbours

@@ -89,11 +89,13 @@ def test_the_workers_store_what_the_in_process_path_stores(client, store, kitche
         store.client.drop_database(other.db.name)
 
 
-def test_posting_it_again_stores_nothing_twice(client, store, kitchen_rgb):
-    body = encoded(body_of(kitchen_rgb, 100))
-    first = post(client, body).json()["scenes"]
+@pytest.mark.parametrize("media_type", ["application/json", "application/x-ndjson"])
+def test_posting_it_again_stores_nothing_twice(client, store, kitchen_rgb, media_type):
+    scenes = body_of(kitchen_rgb, 100 if media_type == "application/json" else 150)
+    body = encoded(scenes) if media_type == "application/json" else as_ndjson(scenes)
+    first = post(client, body, media_type).json()["scenes"]
     before = snapshot(store)
-    again = post(client, body)
+    again = post(client, body, media_type)  # (the workers' write is refused: made here)
     assert again.status_code == 201
     assert [s["scene_id"] for s in again.json()["scenes"]] == [s["scene_id"] for s in first]
     assert not any(s["created"] for s in again.json()["scenes"])

@@ -126,8 +126,8 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             body = await _read_body(request, max_bytes)
             try:
                 results = await run_in_threadpool(
-                    service.ingest_json, body, None,
-                    media_type(request.headers.get("content-type")) == NDJSON)
+                    service.ingest_json, body,
+                    ndjson=media_type(request.headers.get("content-type")) == NDJSON)
             except NotScenes as error:
                 raise ApiError(422, str(error)) from None
             except IngestError as error:

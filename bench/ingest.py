@@ -2,13 +2,14 @@
 
 Scenes of 6 clusters x 20 annotations with 64 px crops cut from the real kitchen frame go in
 (a) in-process through IngestService.ingest_stream (batches, pipelined) and (b) over HTTP:
-JSON batches POSTed on loopback to `pmem serve` running in its own process, not waiting for
-the belief: once with the server's own consolidator working beside (the default), once with
-it off (PMEM_CONSOLIDATOR=false, as when `pmem consolidate` runs elsewhere). Targets:
-in-process >= 2,000 clusters/s; HTTP >= 70 % of the in-process rate of the same run. Both
-ratios are printed: `consolidator_apart` compares like with like (the in-process run stores
-scenes without consolidating them), `consolidator_in_server` is what a default `pmem serve`
-gives on the same cores, consolidating as it goes. All write to scratch databases on the
+batches POSTed one at a time on loopback to `pmem serve` running in its own process, not
+waiting for the belief, as a JSON array and as NDJSON (one scene a line): each once with the
+server's own consolidator working beside (the default), once with it off
+(PMEM_CONSOLIDATOR=false, as when `pmem consolidate` runs elsewhere). Targets: in-process
+>= 2,000 clusters/s; HTTP >= 70 % of the in-process rate of the same run. Every ratio is
+printed: `consolidator_apart` compares like with like (the in-process run stores scenes
+without consolidating them), `consolidator_in_server` is what a default `pmem serve` gives on
+the same cores, consolidating as it goes. All write to scratch databases on the
 same mongod, dropped afterwards. This process collects garbage as pmem's do (collect_less).
 
 Usage: python bench/ingest.py [--scenes N] [--batch N] [--http-scenes N]
@@ -101,11 +102,18 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+FORMATS = {  # media type, how a batch's scenes (JSON texts) make a body
+    "json": ("application/json", lambda texts: "[" + ",".join(texts) + "]"),
+    "ndjson": ("application/x-ndjson", lambda texts: "\n".join(texts) + "\n"),
+}
+
+
 def over_http(db: str, count: int, batch: int, image, progress: Progress,
-              consolidator: bool) -> dict:
+              consolidator: bool, body_format: str) -> dict:
     generated = scenes(count + batch, 1_800_000_000_000_000_000, image, seed=2)
+    media_type, joined = FORMATS[body_format]
     first, *bodies = [
-        "[" + ",".join(s.model_dump_json(by_alias=True) for s in generated[i : i + batch]) + "]"
+        joined([s.model_dump_json(by_alias=True) for s in generated[i : i + batch]])
         for i in range(0, count + batch, batch)
     ]
     port = free_port()
@@ -114,14 +122,14 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
         env={**os.environ, "PMEM_DB": db, "PMEM_MAX_REQUEST_MB": "256",
              "PMEM_CONSOLIDATOR": str(consolidator).lower()},
     )
-    task = progress.add_task("over HTTP", total=count + batch)
+    task = progress.add_task(f"over HTTP ({body_format})", total=count + batch)
     try:
         with httpx2.Client(base_url=f"http://127.0.0.1:{port}", timeout=120) as client:
             _wait_until_up(client)
 
             def post(body: str) -> None:
                 response = client.post("/api/scenes", content=body,
-                                       headers={"content-type": "application/json"})
+                                       headers={"content-type": media_type})
                 response.raise_for_status()
                 progress.advance(task, len(response.json()["scenes"]))
 
@@ -138,6 +146,7 @@ def over_http(db: str, count: int, batch: int, image, progress: Progress,
         server.terminate()
         server.wait(30)
     return {
+        "body": media_type,
         "consolidator_in_server": consolidator,
         "scenes_pending_at_the_end": pending,
         # it gives way to ingest (memory/pipeline.py) and catches up after the burst
@@ -188,20 +197,24 @@ def main() -> None:
             local = in_process(store, args.scenes, args.batch, image, progress)
             local["footprint"] = footprint(store)
         http = {}
-        for consolidator in (True, False):
-            with scratch_store() as store:
-                http[consolidator] = over_http(store.db.name, args.http_scenes, args.batch,
-                                               image, progress, consolidator)
-    ratios = {("consolidator_in_server" if inside else "consolidator_apart"):
-              round(http[inside]["clusters_per_s"] / local["clusters_per_s"], 3)
-              for inside in (True, False)}
+        for body_format in FORMATS:
+            for consolidator in (True, False):
+                with scratch_store() as store:
+                    http[body_format, consolidator] = over_http(
+                        store.db.name, args.http_scenes, args.batch, image, progress,
+                        consolidator, body_format)
+    ratios = {f"{body_format}_consolidator_{'in_server' if inside else 'apart'}":
+              round(http[body_format, inside]["clusters_per_s"] / local["clusters_per_s"], 3)
+              for body_format, inside in http}
     print_json({
         "benchmark": "ingest",
         "clusters_per_scene": CLUSTERS,
         "annotations_per_cluster": 20,
         "in_process": local,
-        "http": http[True],
-        "http_without_consolidator": http[False],
+        "http": http["json", True],
+        "http_without_consolidator": http["json", False],
+        "http_ndjson": http["ndjson", True],
+        "http_ndjson_without_consolidator": http["ndjson", False],
         "http_to_in_process": ratios,
         "http_target": 0.7,
         "http_met": {name: ratio >= 0.7 for name, ratio in ratios.items()},

@@ -96,6 +96,65 @@ def test_bodies_over_the_limit_get_413(client, store):
     assert snapshot(store) == before
 
 
+NDJSON = {"content-type": "application/x-ndjson"}
+
+
+def ndjson(*scenes) -> bytes:
+    return b"".join(json.dumps(scene).encode() + b"\n" for scene in scenes)
+
+
+def test_post_a_batch_as_ndjson(client, store):
+    batch = [valid_scene(seed=i, timestamp=STAMP + 50 + i) for i in range(3)]
+    body = ndjson(batch[0]) + b"\n  \n" + ndjson(*batch[1:]).replace(b"\n", b"\r\n")
+    response = client.post("/api/scenes", content=body, headers=NDJSON)
+    assert response.status_code == 201, response.text
+    stored = response.json()["scenes"]
+    assert [s["created"] for s in stored] == [True, True, True]
+    assert [store.get_scene(ObjectId(s["scene_id"])).timestamp for s in stored] == [
+        STAMP + 50, STAMP + 51, STAMP + 52]  # blank lines skipped, CRLF taken
+    again = client.post("/api/scenes", json=batch).json()["scenes"]
+    assert [s["scene_id"] for s in again] == [s["scene_id"] for s in stored]
+
+
+def test_invalid_ndjson_lines_get_422_naming_scene_and_line_and_nothing_is_written(
+        client, store):
+    bad = valid_scene(seed=9, timestamp=STAMP + 62)
+    bad["clusters"][0]["annotations"][1]["confidence"] = 7
+    body = (ndjson(valid_scene(seed=8, timestamp=STAMP + 60)) + b"\n"
+            + b'{"timestamp": 1,\n' + ndjson(bad, [valid_scene(seed=10, timestamp=STAMP + 63)]))
+    before = snapshot(store)
+    response = client.post("/api/scenes", content=body, headers=NDJSON)
+    assert response.status_code == 422
+    problems = {(p["item"], p["path"]): p["message"]
+                for p in response.json()["error"]["problems"]}
+    assert problems.keys() == {(1, ""), (2, "clusters.0.annotations.1.confidence"), (3, "")}
+    assert problems[1, ""].startswith("line 3 is not valid JSON")  # (line 2 is blank)
+    assert problems[3, ""] == "a scene is a JSON object, not list"
+    assert snapshot(store) == before
+
+
+@pytest.mark.parametrize("body", [b"", b"\n \r\n\n"])
+def test_an_ndjson_body_of_no_scene_is_a_422(client, body):
+    response = client.post("/api/scenes", content=body, headers=NDJSON)
+    assert response.status_code == 422
+    assert response.json()["error"]["message"] == "the batch is empty"
+
+
+def test_ndjson_bodies_over_the_limit_get_413(client, store):
+    scenes = [valid_scene(seed=11, timestamp=STAMP + 70 + i) for i in range(2)]
+    scenes[1]["clusters"][0]["annotations"][0]["source"] = "x" * (2 * 2**20)
+    before = snapshot(store)
+    response = client.post("/api/scenes", content=ndjson(*scenes), headers=NDJSON)
+    assert response.status_code == 413
+    assert snapshot(store) == before
+
+
+def test_ndjson_is_taken_by_post_scenes_only(client):
+    response = client.post("/api/clusters", content=b"{}\n", headers=NDJSON)
+    assert response.status_code == 415
+    assert "application/json" in response.json()["error"]["message"]
+
+
 def test_a_configured_token_guards_writes(store):
     guarded = TestClient(create_app(store, Settings(token="s3cret")), base_url=LOCAL)
     scene = valid_scene(seed=8, timestamp=STAMP + 50)

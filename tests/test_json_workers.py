@@ -37,6 +37,12 @@ def encoded(scenes: list[dict]) -> bytes:
     return body
 
 
+def as_ndjson(scenes: list[dict]) -> bytes:
+    body = b"".join(json.dumps(scene).encode() + b"\n" for scene in scenes)
+    assert len(body) >= PARALLEL_BYTES
+    return body
+
+
 @pytest.fixture(scope="module")
 def client(store):
     settings = Settings(ingest_processes=2, consolidator=False, max_request_mb=64)
@@ -44,8 +50,8 @@ def client(store):
         yield client
 
 
-def post(client, body: bytes):
-    return client.post("/api/scenes", content=body, headers={"content-type": "application/json"})
+def post(client, body: bytes, media_type: str = "application/json"):
+    return client.post("/api/scenes", content=body, headers={"content-type": media_type})
 
 
 def without_ids(value):
@@ -57,9 +63,12 @@ def without_ids(value):
     return None if isinstance(value, ObjectId) else value
 
 
-def test_the_workers_store_what_the_in_process_path_stores(client, store, kitchen_rgb):
-    body = encoded(body_of(kitchen_rgb, 0))
-    answer = post(client, body)
+@pytest.mark.parametrize("media_type", ["application/json", "application/x-ndjson"])
+def test_the_workers_store_what_the_in_process_path_stores(client, store, kitchen_rgb,
+                                                           media_type):
+    scenes = body_of(kitchen_rgb, 0 if media_type == "application/json" else 50)
+    body = encoded(scenes) if media_type == "application/json" else as_ndjson(scenes)
+    answer = post(client, body, media_type)
     assert answer.status_code == 201, answer.text
     ids = [ObjectId(s["scene_id"]) for s in answer.json()["scenes"]]
     assert len(ids) == 24 and all(s["created"] for s in answer.json()["scenes"])
@@ -68,22 +77,25 @@ def test_the_workers_store_what_the_in_process_path_stores(client, store, kitche
                         gridfs_threshold=store.gridfs_threshold)
     try:
         other.prepare()
-        IngestService(other, settings=Settings(ingest_processes=1)).ingest_json(body)
+        IngestService(other, settings=Settings(ingest_processes=1)).ingest_json(encoded(scenes))
         ours = {"scenes": {"_id": {"$in": ids}}, "clusters": {"scene_id": {"$in": ids}},
                 "outbox": {"_id": {"$in": ids}}}
         for name, selected in ours.items():  # (ids made in two processes: not in time order)
             made = sorted(bson.encode(without_ids(d)) for d in store.db[name].find(selected))
             assert made == sorted(bson.encode(without_ids(d)) for d in other.db[name].find())
             assert len(made) == (24 * 6 if name == "clusters" else 24), name
+        assert [store.get_scene(i).timestamp for i in ids] == [s["timestamp"] for s in scenes]
     finally:
         store.client.drop_database(other.db.name)
 
 
-def test_posting_it_again_stores_nothing_twice(client, store, kitchen_rgb):
-    body = encoded(body_of(kitchen_rgb, 100))
-    first = post(client, body).json()["scenes"]
+@pytest.mark.parametrize("media_type", ["application/json", "application/x-ndjson"])
+def test_posting_it_again_stores_nothing_twice(client, store, kitchen_rgb, media_type):
+    scenes = body_of(kitchen_rgb, 100 if media_type == "application/json" else 150)
+    body = encoded(scenes) if media_type == "application/json" else as_ndjson(scenes)
+    first = post(client, body, media_type).json()["scenes"]
     before = snapshot(store)
-    again = post(client, body)
+    again = post(client, body, media_type)  # (the workers' write is refused: made here)
     assert again.status_code == 201
     assert [s["scene_id"] for s in again.json()["scenes"]] == [s["scene_id"] for s in first]
     assert not any(s["created"] for s in again.json()["scenes"])
@@ -101,6 +113,22 @@ def test_problems_in_any_part_are_named_by_their_place_and_nothing_is_stored(
     problems = answer.json()["error"]["problems"]
     assert {(p["item"], p["path"]) for p in problems} == {
         (2, "timestamp"), (21, "clusters.0.annotations.1.confidence")}
+    assert snapshot(store) == before
+
+
+def test_ndjson_problems_in_any_part_are_named_by_scene_and_line_and_nothing_is_stored(
+        client, store, kitchen_rgb):
+    lines = [json.dumps(scene).encode() for scene in body_of(kitchen_rgb, 250)]
+    lines[1] = lines[1][:-1]  # not JSON: in the first part
+    lines[22] = lines[22].replace(b'"timestamp": ', b'"timestamp": -')  # in the last
+    body = b"\n".join(lines)
+    assert len(body) >= PARALLEL_BYTES
+    before = snapshot(store)
+    answer = post(client, body, "application/x-ndjson")
+    assert answer.status_code == 422
+    problems = answer.json()["error"]["problems"]
+    assert [(p["item"], p["path"]) for p in problems] == [(1, ""), (22, "timestamp")]
+    assert problems[0]["message"].startswith("line 2 is not valid JSON")
     assert snapshot(store) == before
 
 

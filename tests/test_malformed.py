@@ -18,7 +18,7 @@ from fastapi.testclient import TestClient
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from percept_memory.ingest.json_input import input_problems, parse, screened
+from percept_memory.ingest.json_input import MAX_STRING, input_problems, parse, screened
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types.base import MAX_TIMESTAMP
 from percept_memory.webui.app import create_app
@@ -309,3 +309,14 @@ def test_a_valid_scene_passes_the_screen_and_parses_as_json_does():
     for body in bodies(SCENE):
         assert screened(body)
         assert parse(body) == (json.loads(body), True)
+
+
+@pytest.mark.parametrize("padding", [0, 1, 7, MAX_STRING // 2 - 3, MAX_STRING // 2 + 5])
+def test_the_screen_measures_a_string_at_any_place_and_passes_long_unquoted_stretches(padding):
+    ones = [1] * (MAX_STRING // 2)  # a stretch of MAX_STRING bytes without a quote
+    for length, passes in ((MAX_STRING, True), (MAX_STRING + 1, False)):
+        data = {"p": "x" * padding, "t": "y" * length, "n": ones}
+        body = json.dumps(data, separators=(",", ":")).encode()
+        assert screened(body) is passes
+        assert bool(input_problems(data)) is not passes
+    assert screened(json.dumps({"n": ones, "p": "x" * padding}).encode())

@@ -24,11 +24,20 @@ from pydantic import ValidationError
 
 from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.jobs import LookupEnqueuer
-from percept_memory.ingest.json_batches import PARALLEL_BYTES, JsonWorkers, scenes_of
+from percept_memory.ingest.json_batches import (
+    PARALLEL_BYTES,
+    BadLine,
+    JsonWorkers,
+    Part,
+    WorkersDied,
+    lines_of,
+    read_lines,
+    scenes_of,
+)
 from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.catalogue.stage import CatalogueStage
 from percept_memory.memory.consolidation import Consolidation
-from percept_memory.memory.documents import SceneIds
+from percept_memory.memory.documents import Documents, SceneIds
 from percept_memory.memory.pipeline import Pipeline
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
@@ -53,9 +62,12 @@ def validate(data: Scene | Mapping, context: Mapping | None = None, item: Any = 
     """A Scene from a Scene or from interchange data (a dict as parsed from JSON). `context`
     carries what reading it needs, e.g. the scene-log folder that relative paths refer to.
     `screened`: the data was parsed from JSON text that passed json_input.screened, so walking
-    it for input_problems would find nothing."""
+    it for input_problems would find nothing. A BadLine (NDJSON) is refused as it says."""
     if isinstance(data, Scene):
         return data
+    if isinstance(data, BadLine):
+        raise IngestError([{"item": item, "path": "", "message": data.message,
+                            "type": "json_invalid"}])
     if not isinstance(data, Mapping):
         raise IngestError([{"item": item, "path": "", "message":
                             f"a scene is a JSON object, not {type(data).__name__}",
@@ -87,25 +99,40 @@ class IngestService:
         if self.json_workers is not None:
             self.json_workers.close()
 
-    def ingest_json(self, body: bytes, wait: float | None = None) -> list[SceneIds]:
+    def ingest_json(self, body: bytes, wait: float | None = None,
+                    ndjson: bool = False) -> list[SceneIds]:
         """Store the scenes of a JSON body (a scene or a list of them, as GET
-        /api/schema/scene describes; NotScenes when it holds none) as ingest_batch does. A
-        large body is parsed, validated and encoded by the worker processes, a part each
-        (json_batches.py); what they could not make (a worker died) or what cannot be
-        stored as they made it (a scene stored before, a write too large) goes the usual
-        way."""
+        /api/schema/scene describes), or with `ndjson` of an NDJSON body (one scene a line,
+        blank lines skipped), as ingest_batch does; NotScenes when it holds none. A large
+        body is parsed, validated and encoded by the worker processes, a part each
+        (json_batches.py), each part stored as it comes; what they could not make (a worker
+        died) or what cannot be stored as they made it (a scene stored before, a write too
+        large) goes the usual way."""
         with self.pipeline.ingesting():
             results = None
             if self.json_workers is not None and len(body) >= PARALLEL_BYTES:
-                made = self.json_workers.prepared(body, self.limits, self.store.gridfs_threshold)
-                if made is not None and self.store.put_documents(made[0]):
-                    results = self._stored(made[1])
+                results = self._made_by_workers(body, ndjson)
             if results is None:
-                items, screened = scenes_of(body)
+                items, screened = _scenes(body, ndjson)
                 results = self.ingest_batch(items, screened=screened)
         if wait is not None:
             self.settled(results, wait)
         return results
+
+    def _made_by_workers(self, body: bytes, ndjson: bool) -> list[SceneIds] | None:
+        """The ids of the body's scenes, stored as the workers make them; None when that could
+        not be done, and nothing was stored."""
+        results: list[SceneIds] = []
+        parts = self.json_workers.prepared(body, ndjson, self.limits,
+                                           self.store.gridfs_threshold)
+        try:
+            if not self.store.put_document_chunks(_documents(parts, results)):
+                return None
+        except WorkersDied:
+            return None
+        finally:
+            parts.close()
+        return self._stored(results)
 
     def ingest(self, data: Scene | Mapping, context: Mapping | None = None,
                wait: float | None = None) -> SceneIds:
@@ -205,6 +232,27 @@ class IngestService:
         if any(r.created for r in results):
             self.pipeline.wake()
         return results
+
+
+def _scenes(body: bytes, ndjson: bool) -> tuple[list, bool]:
+    """A body's items and whether they were all screened (json_input.parse)."""
+    if not ndjson:
+        return scenes_of(body)
+    read = read_lines(lines_of(body))
+    return [item for item, _ in read], all(screened for _, screened in read)
+
+
+def _documents(parts: Iterable[Part], results: list[SceneIds]) -> Iterator[Documents]:
+    """The documents of each part, their ids added to `results`, while no part had a problem;
+    in the end an IngestError naming every problem of every part, if any."""
+    problems: list[dict] = []
+    for part in parts:
+        problems += part.problems
+        if not problems:
+            results += part.results
+            yield part.documents
+    if problems:
+        raise IngestError(problems)
 
 
 def memory_pipeline(store: MemoryStore, settings: Settings | None = None) -> Pipeline:

@@ -270,18 +270,28 @@ class MemoryStore(StoreBase):
         self._catalogue(whole.documents)
         return whole.results
 
-    def put_documents(self, written: docs.Documents) -> bool:
-        """Store the documents of new scenes prepared elsewhere (ingest's worker processes)
-        in one transaction: True. False, and nothing written, when the server refuses them as
-        they are (a scene stored before, a write too large): put_scenes sorts those out."""
+    def put_document_chunks(self, chunks: Iterable[docs.Documents]) -> bool:
+        """Store the documents of new scenes prepared elsewhere (ingest's worker processes) in
+        one transaction, each chunk sent as it comes: True. False, and nothing written, when
+        the server refuses them as they are (a scene stored before, a write too large):
+        put_scenes sorts those out. An exception from `chunks` aborts the transaction."""
+        remaining, sent = iter(chunks), docs.Documents()
+
+        def work(session):  # run again from the start when the transaction is retried
+            if sent.scenes:
+                self._insert(sent, session)
+            for documents in remaining:
+                sent.add(documents)
+                if documents.scenes:  # (a part of no scene: a body of fewer than the parts)
+                    self._insert(documents, session)
+
         try:
-            self._transaction(lambda session: self._insert(written, session),
-                              retry_unreachable=False)
+            self._transaction(work, retry_unreachable=False)
         except (DocumentTooLarge, OperationFailure) as error:
             if too_large(error) or transaction_too_large(error) or duplicate_key(error):
                 return False
             raise
-        self._catalogue(written)
+        self._catalogue(sent)
         return True
 
     def commit_scenes(self, prepared: docs.PreparedWrite) -> list[docs.SceneIds]:

@@ -38,7 +38,7 @@ from .errors import (
     store_status,
 )
 from .export_api import export_router
-from .guard import Guard, authorise
+from .guard import JSON, NDJSON, Guard, authorise, media_type
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
@@ -114,16 +114,20 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
                         "belief (at most PMEM_BELIEF_WAIT_S); `belief` in the answer says "
                         "whether they were")] = None,
     ) -> dict[str, Any]:
-        """Body: a scene, or a list of scenes, as GET /api/schema/scene describes. A batch is
-        validated whole and stored in one transaction, with its place in the memory pipeline:
-        the answer comes once the scenes are durably stored; identity consolidation and
-        lookups follow (see GET /api/pipeline), unless `wait=belief`. Scenes stored before
-        (same robot and timestamp) keep their ids and come back with `created: false`."""
+        """Body: a scene, or a list of scenes, as GET /api/schema/scene describes; or, as
+        `application/x-ndjson`, scenes one a line (blank lines skipped; a large batch is made
+        ready faster, each line being parsed alone). A batch is validated whole and stored in
+        one transaction, with its place in the memory pipeline: the answer comes once the
+        scenes are durably stored; identity consolidation and lookups follow (see GET
+        /api/pipeline), unless `wait=belief`. Scenes stored before (same robot and timestamp)
+        keep their ids and come back with `created: false`."""
         authorise(request, settings.token)
         with service.pipeline.ingesting():  # the server's consolidator waits: the whole request
             body = await _read_body(request, max_bytes)
             try:
-                results = await run_in_threadpool(service.ingest_json, body)
+                results = await run_in_threadpool(
+                    service.ingest_json, body,
+                    ndjson=media_type(request.headers.get("content-type")) == NDJSON)
             except NotScenes as error:
                 raise ApiError(422, str(error)) from None
             except IngestError as error:
@@ -175,8 +179,10 @@ def scenes_body() -> dict:
     """The OpenAPI request body of POST /api/scenes: a scene or a non-empty list of them. (The
     route reads its body itself, to refuse a large one early; see with_scene_schemas.)"""
     scene = {"$ref": SCENE_REF.format(model="Scene")}
-    return {"requestBody": {"required": True, "content": {"application/json": {"schema": {
-        "oneOf": [scene, {"type": "array", "items": scene, "minItems": 1}]}}}}}
+    return {"requestBody": {"required": True, "content": {
+        JSON: {"schema": {"oneOf": [scene, {"type": "array", "items": scene, "minItems": 1}]}},
+        NDJSON: {"schema": {"type": "string", "description": "scenes one a line, each a JSON "
+                            "object as in application/json; blank lines are skipped"}}}}}
 
 
 def with_scene_schemas(app: FastAPI) -> None:

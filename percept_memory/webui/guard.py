@@ -7,9 +7,10 @@ so that it also answers requests no route takes:
 - a request under /api other than GET, HEAD or OPTIONS, whether it writes (POST /api/scenes)
   or asks a query in a JSON body, gets 403 when it comes from a page of another origin
   (`Origin`, PMEM_ALLOWED_ORIGINS excepted; `Origin: null` is a file:// or sandboxed page),
-  and 415 without `Content-Type: application/json`. Any page may send text/plain, form data
-  or a body without type to any server without asking first; JSON needs the server's consent
-  (a CORS preflight), which this app never gives.
+  and 415 without `Content-Type: application/json` (or `application/x-ndjson`, scenes one a
+  line, for POST /api/scenes). Any page may send text/plain, form data or a body without type
+  to any server without asking first; these types need the server's consent (a CORS
+  preflight), which this app never gives.
 - every response says `Referrer-Policy: no-referrer` and `X-Content-Type-Options: nosniff`.
 
 `served_settings` is what `pmem serve` and `pmem demo` run with: beyond loopback without
@@ -34,6 +35,9 @@ from .errors import ApiError, error_response
 LOOPBACK_HOSTS = "127.0.0.1,localhost,::1"
 SAFE_METHODS = {"GET", "HEAD", "OPTIONS"}  # HTTP's "safe" methods: they change nothing
 HEADERS = {"Referrer-Policy": "no-referrer", "X-Content-Type-Options": "nosniff"}
+JSON = "application/json"
+NDJSON = "application/x-ndjson"
+BODY_TYPES = {"/api/scenes": (JSON, NDJSON)}  # the paths that take more than JSON
 
 
 class Guard:
@@ -79,8 +83,10 @@ class Guard:
                                        "to this API; PMEM_ALLOWED_ORIGINS lists other origins "
                                        "that may")
         content_type = headers.get("content-type")
-        if (content_type or "").partition(";")[0].strip().lower() != "application/json":
-            return error_response(415, f"{method} {path} takes Content-Type: application/json, "
+        types = BODY_TYPES.get(path, (JSON,))
+        if media_type(content_type) not in types:
+            return error_response(415, f"{method} {path} takes Content-Type: "
+                                       f"{' or '.join(types)}, "
                                        f"not {content_type or 'a body without one'}")
         return None
 
@@ -95,6 +101,11 @@ def authorise(request: Request, token: str | None) -> None:
     scheme, _, value = given.partition(" ")
     if scheme.lower() != "bearer" or not secrets.compare_digest(value.encode(), token.encode()):
         raise ApiError(403, "the write token is not valid")
+
+
+def media_type(content_type: str | None) -> str:
+    """The media type of a Content-Type header, without its parameters: `application/json`."""
+    return (content_type or "").partition(";")[0].strip().lower()
 
 
 def names(setting: str) -> set[str]:

@@ -38,7 +38,8 @@ class KnownObjects:
     def __init__(self, version: ObjectId | None):
         self.places = Places(version)
         self.docs: dict[ObjectId, dict] = {}
-        self._order: OrderedDict = OrderedDict()  # ids, least recently seen first
+        # ids, least recently seen first (those seen at the same time in any order)
+        self._order: OrderedDict = OrderedDict()
         self._in_order = True  # False when a put came out of order: sorted when next read
 
     @property
@@ -77,9 +78,9 @@ class KnownObjects:
         """An object as its document in the database holds it now, just seen."""
         object_id = doc["_id"]
         self._order.pop(object_id, None)
-        if self._order:  # still in order if seen after the newest of the others
+        if self._order:  # still in time order if seen after the newest of the others
             newest = self.docs[next(reversed(self._order))]
-            self._in_order &= _recency(newest) <= _recency(doc)
+            self._in_order &= newest["last_seen"] <= doc["last_seen"]
         self.docs[object_id] = doc
         self._order[object_id] = None
 

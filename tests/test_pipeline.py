@@ -16,6 +16,7 @@ from pymongo import MongoClient
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
 from percept_memory.memory.consolidation import Consolidation
+from percept_memory.memory.known_objects import FIELDS
 from percept_memory.memory.mongod import EmbeddedMongod
 from percept_memory.memory.pipeline import (
     LeaseLost,
@@ -308,9 +309,9 @@ def test_one_consolidator_per_map_and_a_stale_one_cannot_commit(empty, week):
 
 
 def test_consolidators_taking_turns_on_a_map_keep_the_belief_a_rebuild_gives(empty, week):
-    """Each consolidator keeps the map's places in memory (memory/places.py); a copy that
-    missed a write (by another consolidator, or by its own transaction that did not commit)
-    must be read again, or it would decide on a stale belief."""
+    """Each consolidator keeps the map's objects and places in memory (memory/known_objects.py);
+    a copy that missed a write (by another consolidator, or by its own transaction that did
+    not commit) must be read again, or it would decide on a stale belief."""
     service = IngestService(empty)
     first, second = (Pipeline(empty, [Consolidation(empty)], batch=5) for _ in range(2))
     failing = Failing(set())
@@ -323,10 +324,13 @@ def test_consolidators_taking_turns_on_a_map_keep_the_belief_a_rebuild_gives(emp
             broken.run_once()
             failing.bad.clear()
         (first if turn % 3 else second).drain(timeout=60)
-    places = first.stages[0]._places[kitchen_week.MAP]
+    known = first.stages[0]._known[kitchen_week.MAP]
+    places = known.places
     stored = {doc["_id"]: doc["position"] for doc in empty.db[OBJECTS].find(
         {"state": {"$ne": "disappeared"}})}
     assert {i: list(places.xyz[r]) for i, r in places.rows.items() if places.live[r]} == stored
+    assert known.docs == {doc["_id"]: doc for doc in empty.db[OBJECTS].find(
+        {}, dict.fromkeys(FIELDS, 1))}
     assert rebuilt(empty) == canonical_belief(empty)
 
 

@@ -27,7 +27,7 @@ such a correction made after its scene was consolidated asks for the map to be r
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
@@ -44,8 +44,8 @@ from .identity import (
     Parameters,
     resolve,
 )
+from .known_objects import KnownObjects
 from .naming import naming_fields, naming_labels, stored_weights
-from .places import Places
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
@@ -56,11 +56,6 @@ MAX_UNSEEN_CANDIDATES = 32
 DECODED_KEPT = 4096
 _STATE = {Explanation.HIDDEN: "hidden", Explanation.DISAPPEAR: "disappeared"}
 ALTERNATIVES_KEPT = 5
-RECENT = [("map", 1), ("last_seen", -1), ("last_cluster", -1)]  # objects' map_seen index
-# what deciding reads of a candidate object, with the label weights its names are summed in
-CANDIDATE_FIELDS = {"state": 1, "position": 1, "place_count": 1, "region": 1,
-                    "last_cluster": 1, "last_seen": 1, "first_seen": 1, "views": 1,
-                    "view_support": 1, "view_seen": 1, "label_weights": 1}
 MAX_PLACE_COUNT = 20  # observations an object's place is the mean of, at most
 VIEWS_KEPT = 4  # the distinct looks (sides) of an object it is recognised by
 # what identity reads of stored scenes and clusters: no pixels, clouds or logs
@@ -85,7 +80,7 @@ class Consolidation:
         # cluster id -> its object by the end of its scene (a later scene of the batch may
         # merge that object into another), for the stages after this one in the batch
         self.decided: dict = {}
-        self._places: dict[str, Places] = {}  # map -> where its objects are believed
+        self._known: dict[str, KnownObjects] = {}  # map -> its objects, as last written
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
@@ -93,24 +88,24 @@ class Consolidation:
     def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
         stored = self.calibrations.find_one({"_id": map_name}, session=session)
         calibration = self._calibration(stored)
-        places = self._places_of(map_name, stored and stored.get("version"), session)
-        places.version = ObjectId()  # the version this transaction writes, if it commits
-        later = Later(self.events, self.store.clusters, session)
+        known = self._known_of(map_name, stored and stored.get("version"), session)
+        known.version = ObjectId()  # the version this transaction writes, if it commits
+        later = Later(self.objects, self.events, self.store.clusters, session)
         self.decided = {}
         for scene, arrived in self._scenes(scene_ids, session):
-            self.consolidate(scene, arrived, calibration, places, later, session)
+            self.consolidate(scene, arrived, calibration, known, later, session)
         later.write()
         self.calibrations.replace_one(
-            {"_id": map_name}, {"cues": calibration.to_document(), "version": places.version},
+            {"_id": map_name}, {"cues": calibration.to_document(), "version": known.version},
             upsert=True, session=session)
 
-    def _places_of(self, map_name: str, version: ObjectId | None, session) -> Places:
-        """The map's places in memory, read again unless they are of the stored version."""
-        places = self._places.get(map_name)
-        if places is None or version is None or places.version != version:
-            places = self._places[map_name] = Places.load(self.objects, map_name, version,
-                                                          session)
-        return places
+    def _known_of(self, map_name: str, version: ObjectId | None, session) -> KnownObjects:
+        """The map's objects in memory, read again unless they are of the stored version."""
+        known = self._known.get(map_name)
+        if known is None or version is None or known.version != version:
+            known = self._known[map_name] = KnownObjects.load(self.objects, map_name, version,
+                                                              session)
+        return known
 
     def reset(self, map_name: str) -> None:
         """Forget the map's objects, their events and what its calibration learnt."""
@@ -119,7 +114,7 @@ class Consolidation:
             self.events.delete_many({"object_id": {"$in": ids[start:start + 10_000]}})
         self.objects.delete_many({"map": map_name})
         self.calibrations.delete_one({"_id": map_name})
-        self._places.pop(map_name, None)
+        self._known.pop(map_name, None)
 
     def calibration(self, map_name: str, session=None) -> Calibration:
         """What the map's identity model has learnt so far (the prior before its first scene)."""
@@ -131,11 +126,12 @@ class Consolidation:
                 else Calibration.prior(self.params))
 
     def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
-                    places: Places, later: Later, session) -> list[Decision]:
-        """Decide who is who in one stored scene and record it: the objects at once (the next
-        scene's candidates), its events and cluster links `later`. `arrived`: cluster id ->
-        how many of its annotations came with the scene (the evidence to decide on)."""
-        believed = self._candidates(scene, places, session)
+                    known_objects: KnownObjects, later: Later, session) -> list[Decision]:
+        """Decide who is who in one stored scene and record it: the objects in memory at once
+        (the next scene's candidates), in the database `later` with its events and cluster
+        links. `arrived`: cluster id -> how many of its annotations came with the scene (the
+        evidence to decide on)."""
+        believed = self._candidates(scene, known_objects)
         seen_as = self.observations([c for o, _ in believed for c in _views(o)], session)
         known = [_known(o, in_view, seen_as) for o, in_view in believed
                  if o["last_cluster"] in seen_as]
@@ -147,7 +143,7 @@ class Consolidation:
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in kept}
-        objects, events, seen_as = [], [], {}
+        events, seen_as = [], {}
         links = [UpdateOne({"_id": c.id}, {"$unset": {"object_id": ""}})
                  for c in scene.clusters if c.id not in clusters and c.object_id is not None]
         for decision in decisions:
@@ -160,14 +156,19 @@ class Consolidation:
             events.append(_event(decision, object_id, scene, cluster, previous))
             place = (estimated_place(decision, cluster, previous, self.params, calibration)
                      if cluster else None)
-            objects.append(_object_update(object_id, decision, scene, cluster, previous, place))
-            places.put(object_id, place[0] if place else previous.get("position"),
-                       live=decision.explanation is not Explanation.DISAPPEAR)
+            if cluster is None:  # not seen: hidden or disappeared, where it was
+                fields, labels = {"state": _STATE[decision.explanation]}, None
+            else:
+                fields = _object_fields(decision, scene, cluster, previous, place)
+                labels = naming_labels(cluster.annotations)
+            known_objects.write(object_id, fields, first_seen=scene.timestamp)
+            later.update(object_id, fields, labels, first_seen=scene.timestamp)
+            known_objects.places.put(
+                object_id, place[0] if place else previous.get("position"),
+                live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
                 links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
                 seen_as[cluster.id] = object_id
-        if objects:
-            self.objects.bulk_write(objects, session=session)
         later.add(events, links)
         asked = {c.id: others for c in kept if (others := same_as(c.annotations))}
         if asked or any(d.lookalikes for d in decisions):
@@ -175,14 +176,14 @@ class Consolidation:
         merged: dict = {}  # object -> the object it was merged into
         twins, taken_looks = self._remembered_twice(decisions, clusters, apart, session)
         for keep, twin in twins:
-            self._merge(keep, twin, scene, places, session)
+            self._merge(keep, twin, scene, known_objects, session)
             merged[twin] = keep
         for other, look in taken_looks:
-            self._forget_look(other, look, session)
+            self._forget_look(other, look, known_objects, session)
         for keep, twin in self._asked_to_merge(asked, seen_as, apart, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
             if keep != twin:
-                self._merge(keep, twin, scene, places, session)
+                self._merge(keep, twin, scene, known_objects, session)
                 merged[twin] = keep
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
@@ -237,23 +238,24 @@ class Consolidation:
                     looks.append((other, look))
         return pairs, looks
 
-    def _forget_look(self, object_id, look, session) -> None:
+    def _forget_look(self, object_id, look, known: KnownObjects, session) -> None:
         """A look of an object that another object, seen apart from it, now shows beyond
         doubt, and that it does not show itself now (not its last): it came by a wrong link
         and is forgotten, so it draws no more of the other object's observations. (Identical
         twins each keep the look they were last seen with.)"""
-        doc = self.objects.find_one({"_id": object_id}, CANDIDATE_FIELDS, session=session)
+        doc = known.docs.get(object_id)
         if doc is None or look == doc["last_cluster"] or look not in _views(doc):
             return
-        self.objects.update_one({"_id": object_id}, {"$set": _looks_fields(
-            [kept for kept in _looks(doc) if kept[0] != look])}, session=session)
+        fields = _looks_fields([kept for kept in _looks(doc) if kept[0] != look])
+        self.objects.update_one({"_id": object_id}, {"$set": fields}, session=session)
+        known.write(object_id, fields)
 
     def _seen_together(self, a, b, session) -> bool:
         scenes = [set(self.events.distinct("scene_id", {"object_id": o, "cluster_id": {
             "$ne": None}}, session=session)) for o in (a, b)]
         return bool(scenes[0] & scenes[1])
 
-    def _merge(self, keep, twin, scene: Scene, places: Places, session) -> None:
+    def _merge(self, keep, twin, scene: Scene, known: KnownObjects, session) -> None:
         """One object remembered as two: `twin`'s looks, observations, names and history
         become `keep`'s, and `twin` is no more."""
         kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
@@ -270,7 +272,8 @@ class Consolidation:
                                 session=session)
         self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
                                         session=session)
-        places.put(twin, None, live=False)
+        known.refresh(self.objects, {"_id": keep}, session)
+        known.drop(twin)
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and
@@ -302,18 +305,15 @@ class Consolidation:
             self._decoded.popitem(last=False)
         return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
 
-    def _candidates(self, scene: Scene, places: Places, session) -> list[tuple[dict, bool]]:
+    def _candidates(self, scene: Scene, known: KnownObjects) -> list[tuple[dict, bool]]:
         """The objects of the scene's map its clusters may be, with whether their place is in
         view: all believed present or hidden whose place is in view, and the most recently
         seen of the others, disappeared ones included (they may have been moved or brought
         back here). Older unseen objects still persist; they are just not matched now, which
         keeps a scene's cost independent of how many objects the memory holds."""
-        seen = places.in_view(View(scene))
-        in_sight = [(doc, True) for doc in self.objects.find(
-            {"_id": {"$in": seen}}, CANDIDATE_FIELDS, session=session)] if seen else []
-        recent = self.objects.find({"map": scene.map, "_id": {"$nin": seen}}, CANDIDATE_FIELDS,
-                                   session=session).sort(RECENT).limit(self.max_unseen_candidates)
-        unseen = [(doc, False) for doc in recent]
+        seen = known.places.in_view(View(scene))
+        in_sight = [(doc, True) for doc in known.get(seen)]
+        unseen = [(doc, False) for doc in known.recent(self.max_unseen_candidates, set(seen))]
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
@@ -392,25 +392,68 @@ def _looks_fields(looks: list[tuple]) -> dict:
 
 
 class Later:
-    """A batch's events and cluster links, written together (two commands per batch instead
-    of two per scene); nothing in a batch reads them before `write`, but a merge."""
+    """A batch's object writes, events and cluster links, written together (a few commands
+    per batch instead of a few per scene); nothing in a batch reads them before `write` (the
+    scenes' candidates are in memory: known_objects.py), but a merge."""
 
-    def __init__(self, events, clusters, session):
-        self.targets, self.session = (events, clusters), session
+    def __init__(self, objects, events, clusters, session):
+        self.targets, self.session = (objects, events, clusters), session
+        self.objects: dict = {}  # object id -> its writes so far: Written
         self.events: list[dict] = []
         self.links: list[UpdateOne] = []
+
+    def update(self, object_id, fields: dict, labels: Counter | None = None,
+               first_seen: int | None = None) -> None:
+        """An object's new fields; when seen (`labels`: the names its observation gave it),
+        one observation more, and its first sighting if it is new."""
+        written = self.objects.setdefault(object_id, Written())
+        written.fields.update(fields)
+        if labels is not None:
+            written.observations += 1
+            written.labels.update(labels)
+            if written.first_seen is None:
+                written.first_seen = first_seen
 
     def add(self, events: list[dict], links: list[UpdateOne]) -> None:
         self.events += events
         self.links += links
 
     def write(self) -> None:
-        events, clusters = self.targets
+        objects, events, clusters = self.targets
+        if self.objects:
+            seen = [i for i, written in self.objects.items() if written.observations]
+            stored = {doc["_id"]: doc for doc in objects.find(
+                {"_id": {"$in": seen}}, {"label_weights": 1}, session=self.session)}
+            objects.bulk_write([written.update(object_id, stored.get(object_id, {}))
+                                for object_id, written in self.objects.items()],
+                               session=self.session)
         if self.events:
             events.insert_many(self.events, session=self.session)
         if self.links:
             clusters.bulk_write(self.links, ordered=False, session=self.session)
-        self.events, self.links = [], []
+        self.objects, self.events, self.links = {}, [], []
+
+
+class Written:
+    """What a batch wrote of one object: the fields it set, and when it was seen, the
+    observations, the names they gave it (added to those stored, which enrichment may have
+    changed meanwhile: store.py), and the first sighting (for an object new)."""
+
+    def __init__(self):
+        self.fields: dict = {}
+        self.observations = 0
+        self.labels: Counter = Counter()
+        self.first_seen: int | None = None
+
+    def update(self, object_id, stored: dict) -> UpdateOne:
+        if not self.observations:
+            return UpdateOne({"_id": object_id}, {"$set": self.fields})
+        weights = stored_weights(stored)
+        weights.update(self.labels)
+        return UpdateOne({"_id": object_id}, {
+            "$set": {**self.fields, **naming_fields(weights)},
+            "$setOnInsert": {"first_seen": self.first_seen},
+            "$inc": {"observations": self.observations}}, upsert=True)
 
 
 def _placed(last: Observation, place) -> Observation:
@@ -438,31 +481,19 @@ def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params
     return list(cluster.position), 1
 
 
-def _object_update(object_id, decision: Decision, scene: Scene, cluster: Cluster | None,
-                   previous: dict, place: tuple | None) -> UpdateOne:
-    if cluster is None:  # not seen: hidden or disappeared, where it was
-        return UpdateOne({"_id": object_id}, {"$set": {"state": _STATE[decision.explanation]}})
-    weights = stored_weights(previous)
+def _object_fields(decision: Decision, scene: Scene, cluster: Cluster, previous: dict,
+                   place: tuple) -> dict:
+    """What an object seen in a scene is now (its names aside: Later writes them)."""
     looks = _looks(previous) if previous else []
     support = 1 + sum(look[1] for look in looks if look[0] == decision.look)
     looks = [look for look in looks if look[0] != decision.look] + [
         (cluster.id, support, scene.timestamp)]
-    weights.update(naming_labels(cluster.annotations))
     position, count = place
-    return UpdateOne(
-        {"_id": object_id},
-        {
-            "$set": {
-                "map": scene.map, "state": "present", "last_seen": scene.timestamp,
-                "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
-                **_looks_fields(looks),
-                "position": position, "place_count": count,
-                "x": position[0] if position else None,
-                "y": position[1] if position else None, "region": cluster.region,
-                **naming_fields(weights),
-            },
-            "$setOnInsert": {"first_seen": scene.timestamp},
-            "$inc": {"observations": 1},
-        },
-        upsert=True,
-    )
+    return {
+        "map": scene.map, "state": "present", "last_seen": scene.timestamp,
+        "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
+        **_looks_fields(looks),
+        "position": position, "place_count": count,
+        "x": position[0] if position else None,
+        "y": position[1] if position else None, "region": cluster.region,
+    }

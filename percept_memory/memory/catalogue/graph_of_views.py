@@ -53,21 +53,23 @@ class GraphOfViews:
         return cls(frozenset(map(sys.intern, elements)))
 
     @classmethod
-    def of_sequence(cls, views: Iterable[Sequence[str]]) -> GraphOfViews:
+    def of_sequence(cls, views: Iterable[Sequence[str]], after: Sequence[str] = ()
+                    ) -> GraphOfViews:
         """The model of a sequence of observations, each a list of nodes: every node, an edge
         between the nodes of different modalities seen together, and an edge from each node to
         the nodes of its modality seen next that differ from it (the "blue"-"orange" edge of
-        figure 5.2)."""
+        figure 5.2). `after`: the observation before the sequence, whose own nodes and edges a
+        growing model holds already: only the edges from it to the sequence's first are added
+        (a track grows by one observation at a time)."""
         elements: set[str] = set()
-        previous: dict[str, set[str]] = {}
+        previous = _by_modality(after)
         for observation in views:
             nodes = sorted(set(observation))
             elements.update(nodes)
-            elements.update(edge(a, b) for a, b in combinations(nodes, 2)
-                            if modality(a) != modality(b))
-            current: dict[str, set[str]] = {}
-            for n in nodes:
-                current.setdefault(modality(n), set()).add(n)
+            kinds = [(n, modality(n)) for n in nodes]  # (sorted: in each pair a <= b)
+            elements.update(f"{a}{EDGE}{b}" for (a, kind_a), (b, kind_b)
+                            in combinations(kinds, 2) if kind_a != kind_b)
+            current = _by_modality(nodes)
             for kind, now in current.items():
                 elements.update(edge(a, b) for a in previous.get(kind, ()) for b in now
                                 if a != b)
@@ -94,6 +96,13 @@ class GraphOfViews:
     def modalities(self) -> Counter:
         """number_of(t, G) for every type t present (5.3.3)."""
         return Counter(modality(e) for e in self.elements)
+
+
+def _by_modality(nodes: Iterable[str]) -> dict[str, set[str]]:
+    grouped: dict[str, set[str]] = {}
+    for n in nodes:
+        grouped.setdefault(modality(n), set()).add(n)
+    return grouped
 
 
 def intersection_size(i: GraphOfViews, j: GraphOfViews) -> int:

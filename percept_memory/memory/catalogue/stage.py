@@ -145,7 +145,7 @@ class CatalogueStage:
         if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
             track.update(model=cluster_id, elements=[], last=[], observations=0)
         before = set(track["elements"])
-        grown = GraphOfViews.of_sequence([track["last"], views] if track["last"] else [views])
+        grown = GraphOfViews.of_sequence([views], after=track["last"])
         track.update(last=views, observations=track["observations"] + 1,
                      seen=track["seen"] + 1, last_seen=time)
         if grown.elements <= before:

@@ -442,33 +442,28 @@ class SimilarityIndex:
             passing = self.rows.passing(where)
             excluded = [self.rows.row_of[oid] for oid in exclude if oid in self.rows.row_of]
             passing = passing[~np.isin(passing, excluded)]
-            allowed = None
-            if len(passing) > EXACT_ROWS:  # the graph's neighbours are kept by a mask
-                allowed = np.zeros(len(self.rows), bool)
-                allowed[passing] = True
             wanted = {name: np.asarray(v, np.float32) for name, v in query.items()
                       if name in self.vectors and self.vectors[name].ndim == np.size(v)}
             candidates: set[int] = set()
             for name, vector in wanted.items():
-                candidates |= self._nearest(self.vectors[name], vector, 2 * k, passing,
-                                            allowed)
+                candidates |= self._nearest(self.vectors[name], vector, 2 * k, passing)
             return self._ranked(wanted, np.array(sorted(candidates), np.int64), k)
 
-    def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int, passing: np.ndarray,
-                 allowed: np.ndarray | None) -> set[int]:
-        """The `count` passing rows nearest the vector: exactly among few passing rows, else
-        from ever more neighbours until enough of them are allowed (the mask of the rows
-        passing, when they are many)."""
-        if allowed is None:
+    def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int, passing: np.ndarray
+                 ) -> set[int]:
+        """The `count` passing rows (in order) nearest the vector: exactly among few passing
+        rows, else from ever more neighbours until enough of them pass."""
+        if len(passing) <= EXACT_ROWS:
             rows = passing[vectors.has(passing)]
             if len(rows) <= count:
                 return set(rows.tolist())
             scores = vectors.scores(rows, vector)  # the best `count`, in no order (_ranked's job)
             return set(rows[np.argpartition(-scores, count)[:count]].tolist())
-        fetch = int(count * len(allowed) / len(passing) * 2)
+        fetch = int(count * len(vectors.index) / len(passing) * 2)
         while True:
             keys = vectors.nearest(vector, fetch)
-            kept = keys[allowed[keys]]
+            at = np.minimum(np.searchsorted(passing, keys), len(passing) - 1)
+            kept = keys[passing[at] == keys]
             if len(kept) >= count or fetch >= len(vectors.index):
                 return set(kept[:count].tolist())
             fetch *= 4

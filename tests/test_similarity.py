@@ -210,10 +210,10 @@ def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed():
             assert found.tolist() == expected
 
 
-@pytest.mark.parametrize("exact_balance", [similarity.EXACT_BALANCE, 0])
+@pytest.mark.parametrize("exact_rows", [similarity.EXACT_ROWS, 0])
 def test_filters_hold_whether_searched_exactly_or_approximately(store, day, tmp_path,
-                                                                monkeypatch, exact_balance):
-    monkeypatch.setattr(similarity, "EXACT_BALANCE", exact_balance)
+                                                                monkeypatch, exact_rows):
+    monkeypatch.setattr(similarity, "EXACT_ROWS", exact_rows)
     index = SimilarityIndex(store, tmp_path / "index")
     index.refresh()
     start = next(iter(day[1]))

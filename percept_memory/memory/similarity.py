@@ -9,7 +9,7 @@ and filters through a Python callback per candidate; faiss-cpu is a 19 MB wheel 
 index cannot remove a vector. Filters need no help from the library: every cluster's time,
 robot, region and map never change once stored, so the index keeps them as numpy arrays (a
 row per cluster) and a filter selects rows (a time window by the rows sorted by time, the
-rest by masks over the window's rows). When few pass (EXACT_BALANCE), those
+rest by masks over the window's rows). When at most EXACT_ROWS pass, those
 rows are searched exactly, from the vectors kept a second time as a matrix by row (memory
 for speed: a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the
 graph's neighbours are over-fetched and kept when they pass.
@@ -58,10 +58,11 @@ MARGIN = timedelta(seconds=10)
 EXPANSION_SEARCH = 128  # usearch's default 64 finds half the true 10 nearest of random data
 CHUNK = 500  # clusters read and described at a time
 PROGRESS_EVERY = 100  # chunks: a build from a large database logs how far it is
-# Whether the rows a filter passes (p of n) are searched exactly: exact scores cost ~p, a graph
-# search ~ the neighbours fetched to keep 2k of them, 4kn/p; even when p² = EXACT_BALANCE * n
-# (measured at a million rows: 73,000 scored exactly in 3.7 ms, 570 neighbours in 4.0 ms).
-EXACT_BALANCE = 5_000
+# When a filter passes at most this many rows they are searched exactly. Exact is always right,
+# a filtered graph search is not: the nearest rows passing a narrow filter are often far, where
+# the graph finds few of them (a robot and a day, 7 % of a million rows: the true top 10 for 1
+# query of 150); so exact as long as it stays cheap: its cost is the rows', ~0.05 us each.
+EXACT_ROWS = 100_000
 SCORE_BLOCK = 2048  # rows gathered and scored at a time (~1 MB of 144 floats: in the cache)
 SAVE_EVERY = 1000  # rows added or removed since the files were written
 META = ("time", "robot", "region", "map")  # per row; robot, region and map as codes
@@ -101,6 +102,10 @@ class RowFilter:
     map: Sequence[str] = ()
     after: int | None = None
     before: int | None = None
+
+    def narrows(self) -> bool:
+        return bool(self.robot or self.region or self.map) or \
+            self.after is not None or self.before is not None
 
 
 class Rows:
@@ -443,34 +448,38 @@ class SimilarityIndex:
         """The k clusters most alike the query's descriptors (those the index has), best
         first, among those the filter lets through."""
         with self.lock:
-            passing = self.rows.passing(where)
-            excluded = [self.rows.row_of[oid] for oid in exclude if oid in self.rows.row_of]
-            passing = passing[~np.isin(passing, excluded)]
+            # Every row, unfiltered: the graph's rows are those in the database already.
+            passing = self.rows.passing(where) if where.narrows() else None
+            excluded = {self.rows.row_of[oid] for oid in exclude if oid in self.rows.row_of}
             wanted = {name: np.asarray(v, np.float32) for name, v in query.items()
                       if name in self.vectors and self.vectors[name].ndim == np.size(v)}
             candidates: set[int] = set()
             for name, vector in wanted.items():
-                candidates |= self._nearest(self.vectors[name], vector, 2 * k, passing)
-            return self._ranked(wanted, np.array(sorted(candidates), np.int64), k)
+                candidates |= self._nearest(self.vectors[name], vector, 2 * k + len(excluded),
+                                            passing)
+            return self._ranked(wanted, np.array(sorted(candidates - excluded), np.int64), k)
 
-    def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int, passing: np.ndarray
-                 ) -> set[int]:
-        """The `count` passing rows (in order) nearest the vector: exactly among few passing
-        rows, else from ever more neighbours until enough of them pass."""
-        if len(passing) ** 2 <= EXACT_BALANCE * len(vectors.index) or not len(vectors.index):
+    def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int,
+                 passing: np.ndarray | None) -> set[int]:
+        """The `count` rows nearest the vector among those passing (in order; None: all):
+        exactly among up to EXACT_ROWS, else from ever more neighbours until enough pass."""
+        if passing is not None and len(passing) <= EXACT_ROWS:
             rows = passing[vectors.has(passing)]
             if len(rows) <= count:
                 return set(rows.tolist())
             scores = vectors.scores(rows, vector)  # the best `count`, in no order (_ranked's job)
             return set(rows[np.argpartition(-scores, count)[:count]].tolist())
-        fetch = int(count * len(vectors.index) / len(passing) * 2)
-        while True:
+        held = len(vectors.index)
+        fetch = count * 2 if passing is None else int(count * held / len(passing) * 2)
+        while held:
             keys = vectors.nearest(vector, fetch)
-            at = np.minimum(np.searchsorted(passing, keys), len(passing) - 1)
-            kept = keys[passing[at] == keys]
-            if len(kept) >= count or fetch >= len(vectors.index):
-                return set(kept[:count].tolist())
+            if passing is not None:
+                at = np.minimum(np.searchsorted(passing, keys), len(passing) - 1)
+                keys = keys[passing[at] == keys]
+            if len(keys) >= count or fetch >= held:
+                return set(keys[:count].tolist())
             fetch *= 4
+        return set()
 
     def _ranked(self, query: Mapping[str, np.ndarray], rows: np.ndarray, k: int
                 ) -> list[Match]:

@@ -27,10 +27,11 @@
 5. Through MongoDB (--mongodb N): N clusters stored as scenes of 50 (a region, a map per
    robot, a week of times, a 144-float feature vector clustered as in 4), the index built
    from MongoDB by refresh and saved beside it (time, size), and p50/p95 of similar_to from a
-   stored cluster with a filter (region and day; map and day), hits read from MongoDB.
-   Default 200,000: a million takes ~20 minutes to build on two shared cores; the per-million
-   build time and size are extrapolated linearly (the graph's insertion grows a little
-   faster than linearly).
+   stored cluster per descriptor, unfiltered and with a filter (region, map or robot, and a
+   day), hits read from MongoDB. Default 200,000. With --reuse-db NAME the database and its
+   index (where `pmem serve` keeps it: PMEM_DATA_DIR/similarity/NAME) are kept: a first run
+   stores and builds (a million: ~4 minutes to store, ~25 to build on two shared cores), a
+   second only loads the index and times the queries (`--only mongodb` to skip the rest).
 6. Ingest: storing scenes does no index work (the index catches up from MongoDB when it is
    next asked, memory/similarity.py), so ingest is not slowed at all; what it costs instead
    is the catch-up, measured here as the refresh after storing synthetic scenes in process,
@@ -41,12 +42,16 @@
    catalogue stage as it learns).
 
 Usage: python bench/similarity.py [--days N] [--every N] [--vectors N] [--clustered N]
-                                  [--mongodb N] [--scenes N] [--words N]
+                                  [--mongodb N] [--reuse-db NAME] [--scenes N] [--words N]
+                                  [--only PART ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import os
+import resource
 import string
 import tempfile
 import time
@@ -66,7 +71,7 @@ from percept_memory.ingest.service import IngestService
 from percept_memory.memory import similarity
 from percept_memory.memory.schema import TERMS
 from percept_memory.memory.search_keys import trigrams
-from percept_memory.memory.settings import collect_less
+from percept_memory.memory.settings import Settings, collect_less
 from percept_memory.memory.similarity import Entry, RowFilter, SimilarityIndex
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import (
@@ -84,6 +89,7 @@ from percept_memory.queries.ops import QueryError
 from percept_memory.queries.similar import Similarity
 
 DAY = 86_400 * 10**9
+WEEK_START = 1_700_000_000 * 10**9  # through_mongodb: its clusters' week
 CHUNK = 50_000  # rows added to the index at a time
 REGIONS = ["counter_top_sink", "counter_top_island", "table", "shelf"]
 LATENCY_TARGET_MS = 10.0
@@ -92,6 +98,7 @@ LOOK_NOISE = 0.0625  # per dimension: a look's noise has norm 0.75 against its i
 SLOWDOWN_TARGET = 0.10
 SCENE_CLUSTERS = 50  # through_mongodb: clusters per stored scene
 STORE_SCENES = 20  # through_mongodb: scenes stored per transaction
+log = logging.getLogger("bench.similarity")
 PNP09 = Path(__file__).resolve().parents[2] / \
     "shared/data/robosherlock/mongodump/PnP09ObjSymbolicGTFixed"
 DRINKS = ["juice", "milk", "tea", "water"]
@@ -265,7 +272,7 @@ def at_scale(count: int, folder: Path, queries: int = 200) -> dict:
         latency[name] = {"p50_ms": round(float(np.percentile(took, 50)) * 1e3, 2),
                          "p95_ms": round(float(np.percentile(took, 95)) * 1e3, 2)}
     latency["filtered_region_and_day"]["share_of_rows"] = round(
-        float(loaded.rows.mask(filtered).mean()), 4)
+        len(loaded.rows.passing(filtered)) / count, 4)
     recall = []
     for probe in probes[:20]:
         exact = set(np.argsort(-(vectors @ probe))[:10].tolist())
@@ -311,83 +318,112 @@ def clustered_recall(count: int, folder: Path, queries: int = 200) -> dict:
             "recall_at_10_unfiltered": round(float(np.mean(recall)), 3)}
 
 
-def through_mongodb(count: int, folder: Path, queries: int = 200) -> dict:
-    """The scale figures through the user's path: `count` clusters stored in MongoDB as
-    scenes (SCENE_CLUSTERS each; a region, a map per robot, a week of times, a 144-float
-    feature vector that clusters as in clustered_recall), the index built from MongoDB by
-    refresh (read, decoded, described, added, saved beside the database), then p50/p95 of
-    Similarity.similar_to from a stored cluster with a filter (one region and one day;
-    one map and one day), hits read back from MongoDB, and of the index's search alone."""
-    rng = np.random.default_rng(2)
-    items = unit(rng.normal(size=(max(1, count // LOOKS_PER_ITEM), 144)))
+def stored_for_scale(store: MemoryStore, count: int) -> float:
+    """Store clusters as scenes (SCENE_CLUSTERS each; a region, a map per robot, a week of
+    times, a 144-float feature vector that clusters as in clustered_recall) until the database
+    holds `count`; a kept database is filled where its last run stopped. Returns the seconds."""
+    items = unit(np.random.default_rng(2).normal(size=(max(1, count // LOOKS_PER_ITEM), 144)))
+    have = store.clusters.estimated_document_count()
+    rng = np.random.default_rng([2, have])
     robots = ["robot0", "robot1"]
-    with scratch_store() as store:
-        start = time.perf_counter()
-        for first in range(0, count, SCENE_CLUSTERS * STORE_SCENES):
-            batch = []
-            for s in range(first, min(first + SCENE_CLUSTERS * STORE_SCENES, count),
-                           SCENE_CLUSTERS):
-                size = min(SCENE_CLUSTERS, count - s)
-                looks = unit(items[rng.integers(len(items), size=size)]
-                             + rng.normal(scale=LOOK_NOISE, size=(size, 144)))
-                region = REGIONS[int(rng.integers(len(REGIONS)))]
-                batch.append(Scene(
-                    timestamp=int(rng.integers(0, 7 * DAY)) + 1_700_000_000 * 10**9,
-                    robot=robots[s // SCENE_CLUSTERS % 2],
-                    clusters=[Cluster(annotations=[
-                        Location(region=region, position=tuple(rng.uniform(0, 3, 3))),
-                        FeatureVector(name="cnn", vector=look)]) for look in looks]))
-            store.put_scenes(batch)
+    start = time.perf_counter()
+    for first in range(have, count, SCENE_CLUSTERS * STORE_SCENES):
+        batch = []
+        for s in range(first, min(first + SCENE_CLUSTERS * STORE_SCENES, count), SCENE_CLUSTERS):
+            size = min(SCENE_CLUSTERS, count - s)
+            looks = unit(items[rng.integers(len(items), size=size)]
+                         + rng.normal(scale=LOOK_NOISE, size=(size, 144)))
+            region = REGIONS[int(rng.integers(len(REGIONS)))]
+            batch.append(Scene(
+                timestamp=int(rng.integers(0, 7 * DAY)) + WEEK_START,
+                robot=robots[s // SCENE_CLUSTERS % 2],
+                clusters=[Cluster(annotations=[
+                    Location(region=region, position=tuple(rng.uniform(0, 3, 3))),
+                    FeatureVector(name="cnn", vector=look)]) for look in looks]))
+        store.put_scenes(batch)
+        if (first // (SCENE_CLUSTERS * STORE_SCENES)) % 50 == 0:
+            log.info("stored %d clusters of %d", first + SCENE_CLUSTERS * STORE_SCENES, count)
+    return time.perf_counter() - start
+
+
+def through_mongodb(count: int, folder: Path, keep: str | None, queries: int = 200) -> dict:
+    """The scale figures through the user's path: `count` clusters in MongoDB
+    (stored_for_scale), the index built from MongoDB by refresh (read, decoded, described,
+    added, saved beside the database), then p50/p95 of Similarity.similar_to from a stored
+    cluster, hits read back from MongoDB, per descriptor, unfiltered and with a filter (one
+    region, one map or one robot, and one day), and of the index's search alone. With `keep`,
+    that database is kept (filled only up to `count`) and its index is the one `pmem serve`
+    would use (PMEM_DATA_DIR/similarity/<keep>), kept too: a second run only loads it."""
+    with scratch_store(keep) as store:
+        store_s = stored_for_scale(store, count)
         stored = time.perf_counter()
-        store_s = stored - start
-        index = SimilarityIndex(store, folder / "mongodb")
+        index = SimilarityIndex.of(store, Settings(db=keep)) if keep else \
+            SimilarityIndex(store, folder / "mongodb")
+        built = not (index.folder / "rows.json").exists()
         start = time.perf_counter()
-        index.refresh()
-        index.save()
+        index.refresh()  # and saves what it added
         build_s = time.perf_counter() - start
-        size = sum(f.stat().st_size for f in (folder / "mongodb").iterdir())
+        size = sum(f.stat().st_size for f in index.folder.iterdir())
         start = time.perf_counter()
-        loaded = SimilarityIndex(store, folder / "mongodb")
+        loaded = SimilarityIndex(store, index.folder)
         loaded.refresh()  # loads the files, then finds nothing to add
         load_s = time.perf_counter() - start
+        del index
         # A refresh reads again the ids made within the margin before its last read (they may
         # not have been committed then): those of the last seconds of storing, until then.
         time.sleep(max(0.0, similarity.MARGIN.total_seconds() - (time.perf_counter() - stored)))
         loaded.refresh()
-        search = Similarity(store, index=loaded)
-        starts = [loaded.rows.ids[i] for i in rng.integers(len(loaded.rows), size=queries)]
-        day = 1_700_000_000 * 10**9 + 2 * DAY
-        filters = {"region_and_day": {"region": ["table"]},
-                   "map_and_day": {"map": ["robot1/map"]}}
-        latency = {}
+        latency = scale_latency(store, loaded, queries)
+    per_million = 1e6 / count
+    p95 = max(row["similar_to_p95_ms"] for per in latency.values()
+              for name, row in per.items() if name != "unfiltered")
+    return {"clusters": count, "dimensions": 144, "clusters_per_scene": SCENE_CLUSTERS,
+            "database": keep, "store_s": round(store_s, 1),
+            "index_built_now": built, "index_folder": str(loaded.folder),
+            "index_build_from_mongodb_s" if built else "index_found_and_loaded_s":
+                round(build_s, 1),
+            "index_build_clusters_per_s": round(count / build_s) if built else None,
+            "index_load_s": round(load_s, 2), "index_size_mb": round(size / 2**20, 1),
+            "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+                                         / 1024),
+            "per_million_linear_extrapolation": None if count >= 1_000_000 or not built else {
+                "index_build_s": round(build_s * per_million),
+                "index_size_mb": round(size / 2**20 * per_million)},
+            "latency": latency, "load_average": os.getloadavg(),
+            "target_p95_ms": LATENCY_TARGET_MS, "met": p95 < LATENCY_TARGET_MS}
+
+
+def scale_latency(store: MemoryStore, index: SimilarityIndex, queries: int) -> dict:
+    """Per descriptor and filter: p50/p95 of similar_to (refresh, start read from MongoDB,
+    search, hits read back) and p95 of the index's search alone, from `queries` stored
+    clusters."""
+    rng = np.random.default_rng(3)
+    search = Similarity(store, index=index)
+    starts = [index.rows.ids[i] for i in rng.integers(len(index.rows), size=queries)]
+    day = {"after": WEEK_START + 2 * DAY, "before": WEEK_START + 3 * DAY - 1}
+    filters = {"unfiltered": {}, "region_and_day": {"region": ["table"], **day},
+               "map_and_day": {"map": ["robot1/map"], **day},
+               "robot_and_day": {"robot": ["robot0"], **day}}
+    latency: dict = {}
+    for descriptor in index.names():
         for name, where in filters.items():
             took, alone = [], []
             for cluster_id in starts:
                 begin = time.perf_counter()
-                search.similar_to(cluster=cluster_id, k=10, after=day, before=day + DAY - 1,
-                                  **where)
+                search.similar_to(cluster=cluster_id, k=10, descriptor=[descriptor], **where)
                 took.append(time.perf_counter() - begin)
+                vector = {descriptor: index.descriptors_of(cluster_id)[descriptor]}
                 begin = time.perf_counter()
-                loaded.search(loaded.descriptors_of(cluster_id), 10, RowFilter(
-                    after=day, before=day + DAY - 1, **where), [cluster_id])
+                index.search(vector, 10, RowFilter(**where), [cluster_id])
                 alone.append(time.perf_counter() - begin)
-            latency[name] = {
-                "share_of_rows": round(float(loaded.rows.mask(RowFilter(
-                    after=day, before=day + DAY - 1, **where)).mean()), 4),
+            latency.setdefault(descriptor, {})[name] = {
+                "share_of_rows": round(len(index.rows.passing(RowFilter(**where)))
+                                       / len(index.rows), 4),
                 "similar_to_p50_ms": round(float(np.percentile(took, 50)) * 1e3, 2),
                 "similar_to_p95_ms": round(float(np.percentile(took, 95)) * 1e3, 2),
+                "index_search_p50_ms": round(float(np.percentile(alone, 50)) * 1e3, 2),
                 "index_search_p95_ms": round(float(np.percentile(alone, 95)) * 1e3, 2)}
-    per_million = 1e6 / count
-    p95 = max(row["similar_to_p95_ms"] for row in latency.values())
-    return {"clusters": count, "dimensions": 144, "clusters_per_scene": SCENE_CLUSTERS,
-            "store_s": round(store_s, 1), "index_build_from_mongodb_s": round(build_s, 1),
-            "index_build_clusters_per_s": round(count / build_s),
-            "index_load_s": round(load_s, 2), "index_size_mb": round(size / 2**20, 1),
-            "per_million_linear_extrapolation": None if count >= 1_000_000 else {
-                "index_build_s": round(build_s * per_million),
-                "index_size_mb": round(size / 2**20 * per_million)},
-            "latency_with_filter": latency,
-            "target_p95_ms": LATENCY_TARGET_MS, "met": p95 < LATENCY_TARGET_MS}
+    return latency
 
 
 def orb_cost(crops: list[np.ndarray]) -> dict:
@@ -436,6 +472,9 @@ def ingest_cost(count: int, folder: Path) -> dict:
             "refresh_with_nothing_new_ms": round(idle_s * 1e3, 1)}
 
 
+PARTS = ("kitchen", "robosherlock", "meaning", "scale", "clustered", "mongodb", "ingest")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--days", type=int, default=7)
@@ -445,25 +484,39 @@ def main() -> None:
                         help="vectors of the recall check on clustered data (0: skip)")
     parser.add_argument("--mongodb", type=int, default=200_000,
                         help="clusters stored for the figures through MongoDB (0: skip)")
+    parser.add_argument("--reuse-db", metavar="NAME", help=(
+        "through MongoDB on this database, kept with its index (filled up to --mongodb "
+        "clusters when it holds fewer; the index built only when it has none)"))
+    parser.add_argument("--only", nargs="+", choices=PARTS, default=PARTS,
+                        help="run only these parts")
     parser.add_argument("--scenes", type=int, default=300)
     parser.add_argument("--words", type=int, default=50_000,
                         help="words added to the vocabulary to see what a large one costs")
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     collect_less()
-    with tempfile.TemporaryDirectory() as folder, kitchen(args.days) as (store, item):
-        print_json({
-            "benchmark": "similarity",
-            "kitchen_week": {"days": args.days,
-                             **precision(store, item, args.every, Path(folder))},
-            "robosherlock_ground_truth": robosherlock_truth(Path(folder)),
-            "meaning": meanings(store, item, args.words),
-            "at_scale": at_scale(args.vectors, Path(folder)),
-            "clustered_recall": clustered_recall(args.clustered, Path(folder))
-            if args.clustered else None,
-            "through_mongodb": through_mongodb(args.mongodb, Path(folder))
-            if args.mongodb else None,
-            "ingest": ingest_cost(args.scenes, Path(folder)),
-        })
+    wanted = set(args.only)
+    result: dict = {"benchmark": "similarity"}
+    with tempfile.TemporaryDirectory() as name:
+        folder = Path(name)
+        if wanted & {"kitchen", "meaning"}:
+            with kitchen(args.days) as (store, item):
+                if "kitchen" in wanted:
+                    result["kitchen_week"] = {"days": args.days,
+                                              **precision(store, item, args.every, folder)}
+                if "meaning" in wanted:
+                    result["meaning"] = meanings(store, item, args.words)
+        if "robosherlock" in wanted:
+            result["robosherlock_ground_truth"] = robosherlock_truth(folder)
+        if "scale" in wanted:
+            result["at_scale"] = at_scale(args.vectors, folder)
+        if "clustered" in wanted and args.clustered:
+            result["clustered_recall"] = clustered_recall(args.clustered, folder)
+        if "mongodb" in wanted and args.mongodb:
+            result["through_mongodb"] = through_mongodb(args.mongodb, folder, args.reuse_db)
+        if "ingest" in wanted:
+            result["ingest"] = ingest_cost(args.scenes, folder)
+    print_json(result)
 
 
 if __name__ == "__main__":

@@ -190,6 +190,26 @@ def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_pa
         store.db[collection].delete_many({key: stored[0].scene_id})
 
 
+def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed():
+    """The rows sorted by time are merged with those added since, not sorted again."""
+    rng = np.random.default_rng(0)
+    rows = similarity.Rows()
+    times = rng.integers(0, 100, 3000)  # out of order, many alike: window ends are inclusive
+    for first in range(0, len(times), 700):  # added in batches, filtered between them
+        for row in range(first, min(first + 700, len(times))):
+            rows.add(ObjectId(), int(times[row]),
+                     {"robot": "r", "region": "ab"[row % 2], "map": None})
+        rows.remove(int(rng.integers(len(rows))))
+        live = rows.columns["live"][:len(rows)]
+        assert rows.live_count() == live.sum() < len(rows)
+        for after, before in [(10, 20), (None, 50), (50, None), (30, 30), (None, None)]:
+            expected = [row for row in range(len(rows)) if live[row] and row % 2 == 0
+                        and (after is None or times[row] >= after)
+                        and (before is None or times[row] <= before)]
+            found = rows.passing(RowFilter(region=["a"], after=after, before=before))
+            assert found.tolist() == expected
+
+
 @pytest.mark.parametrize("exact_rows", [similarity.EXACT_ROWS, 0])
 def test_filters_hold_whether_searched_exactly_or_approximately(store, day, tmp_path,
                                                                 monkeypatch, exact_rows):

@@ -121,7 +121,9 @@ class Similarity:
             if not seen:
                 raise NotFound("object", query.object)
             cluster_id = seen[0].cluster_id
-        if self.store.db[CLUSTERS].find_one({"_id": cluster_id}, {"_id": 1}) is None:
+        # The index, just caught up, knows the stored clusters: MongoDB is asked only of others.
+        if not self.index.holds(cluster_id) and \
+                self.store.db[CLUSTERS].find_one({"_id": cluster_id}, {"_id": 1}) is None:
             raise NotFound("cluster", cluster_id)
         return cluster_id, self.index.descriptors_of(cluster_id)
 

@@ -312,9 +312,10 @@ CENTRES = np.sqrt(EDGES[:-1] * EDGES[1:])
 class Histogram:
     """The distribution of the surprise of pairs of different objects, learnt as a slowly
     forgetting histogram over log steps: its lower tail (different objects that happen to
-    look alike, twins) is what decides "moved here" against "a new object", and no simple
-    family fits it (a Gamma fitted to the bulk makes a look-alike hundreds of times likelier
-    to be the same object than it is)."""
+    look alike, twins; or stand beside one's place) is what decides "moved here" against "a
+    new object", and "turned" against "another one put there", and no simple family fits it
+    (a Gamma fitted to the bulk makes a look-alike hundreds of times likelier to be the same
+    object than it is, and any place within 0.15 m e^12 times)."""
 
     weight: float
     counts: np.ndarray
@@ -387,8 +388,9 @@ class Cue:
 
 
 # How alike different objects look is learnt from the pairs of clusters of each scene (sure
-# to be different objects), whose lower tail a histogram follows; how near another object
-# lies from its places is learnt from the decisions, a Gamma (_learn).
+# to be different objects), how near another object lies from the confident decisions' other
+# pairings (_learn); a histogram follows the lower tail of each: the look-alikes, and the
+# objects beside one's place, among the bulk of other tables metres away.
 DIFFERENT: dict[str, type] = {"look": Histogram, "place": Histogram}
 
 

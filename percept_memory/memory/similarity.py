@@ -259,7 +259,7 @@ class Vectors:
     def _reach(self, stack: np.ndarray) -> None:
         if len(stack):
             fits = max(float(stack.max()), -float(stack.min())) <= HALF_MAX
-            longest = np.sqrt(float(np.einsum("ij,ij->i", stack, stack).max()))
+            longest = np.sqrt(np.einsum("ij,ij->i", stack, stack, dtype=np.float64).max())
             self.reach = max(self.reach, longest if fits else np.inf)
 
     def remove(self, row: int) -> None:

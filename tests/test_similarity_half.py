@@ -155,3 +155,18 @@ def test_a_numkong_summing_in_float16_is_found_out_and_not_relied_on(index, monk
             assert [index.search(*question) for question in asked] != expected
     finally:
         similarity.sums_in_float32.cache_clear()
+
+
+def test_of_rows_scoring_alike_the_first_added_are_found_whatever_the_scan_order(monkeypatch):
+    rng = np.random.default_rng(5)
+    looks = unit(rng.normal(size=(50, 16)))
+    vectors = Vectors(16)
+    vectors.add(np.arange(200), np.repeat(looks, 4, axis=0))  # each look stored 4 times
+    query = looks[3]
+    second = int(np.argsort(-(looks @ query))[1])  # the next look: 2 of its 4 rows are kept
+    expected = {12, 13, 14, 15, 4 * second, 4 * second + 1}
+    for shuffled in (np.arange(200), np.arange(200)[::-1], rng.permutation(200)):
+        assert set(vectors.best(shuffled, query, 6).tolist()) == expected
+        with monkeypatch.context() as patched:
+            in_float32(patched)
+            assert set(vectors.best(shuffled, query, 6).tolist()) == expected

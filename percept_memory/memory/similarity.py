@@ -172,9 +172,10 @@ class Rows:
         return row
 
     def passing(self, f: RowFilter) -> np.ndarray:
-        """The rows that pass the filter (and are still in the database), in order. With a
-        time window only its rows are looked at, found in the rows sorted by time: a day's
-        filter over a million rows costs as that day's rows do, not as all of them."""
+        """The rows that pass the filter (and are still in the database), in no set order.
+        With a time window only its rows are looked at, found in the rows sorted by time: a
+        day's filter over a million rows costs as that day's rows do, not as all of them (and
+        they stay in time order: sorting them by row would cost a tenth of scanning them)."""
         n = len(self)
         if f.after is None and f.before is None:
             rows = None
@@ -191,7 +192,7 @@ class Rows:
                 chosen = np.zeros(len(self.names[key]), bool)  # by code: a gather, not a search
                 chosen[[self._code_of[key][v] for v in wanted if v in self._code_of[key]]] = True
                 keep &= chosen[self.columns[key][:n] if rows is None else self.columns[key][rows]]
-        return np.flatnonzero(keep) if rows is None else np.sort(rows[keep])
+        return np.flatnonzero(keep) if rows is None else rows[keep]
 
     def _time_order(self) -> tuple[np.ndarray, np.ndarray]:
         """The rows sorted by time, and their times: the rows added since the last call are
@@ -288,20 +289,22 @@ class Vectors:
 
     def best(self, rows: np.ndarray, vector: np.ndarray, count: int) -> np.ndarray:
         """The `count` rows (of these, which have this descriptor) that score highest in
-        float32, in no order. The float16 copy is scanned; a row whose float16 score is within
-        twice the rounding's bound of the count-th best may be among them, and only those rows
-        are scored again in float32: the rows found are the float32 scan's (among equal scores
-        either may be kept, as in any scan)."""
+        float32, in no order; of rows scoring as the count-th does, the first added. The float16
+        copy is scanned; a row whose float16 score is within twice the rounding's bound of the
+        count-th best may be among them, and only those rows are scored again in float32: the
+        rows found are the float32 scan's, whatever order the rows come in."""
         if len(rows) > count:
             query = in_half(vector)
             bound = self._rounding_bound(vector, query)
             if np.isfinite(bound):
                 rough = self._half_scores(rows, query)
-                kth = np.partition(rough, len(rough) - count)[len(rough) - count]
-                rows = rows[rough >= kth - 2 * bound]
+                rows = rows[rough >= _kth_largest(rough, count) - 2 * bound]
         if len(rows) <= count:
             return rows
-        return rows[np.argpartition(-self.scores(rows, vector), count)[:count]]
+        scores = self.scores(rows, vector)
+        kth = _kth_largest(scores, count)
+        above = rows[scores > kth]
+        return np.concatenate([above, np.sort(rows[scores == kth])[:count - len(above)]])
 
     def _half_scores(self, rows: np.ndarray, query: np.ndarray) -> np.ndarray:
         """The rows' float16 inner products with the float16 query, summed in float32 by
@@ -522,17 +525,19 @@ class SimilarityIndex:
 
     def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int,
                  passing: np.ndarray | None) -> set[int]:
-        """The `count` rows nearest the vector among those passing (in order; None: all):
-        exactly among up to EXACT_ROWS, else from ever more neighbours until enough pass."""
+        """The `count` rows nearest the vector among those passing (None: all): exactly
+        among up to EXACT_ROWS, else from ever more neighbours until enough pass."""
         if passing is not None and len(passing) <= EXACT_ROWS:
             return set(vectors.best(passing[vectors.has(passing)], vector, count).tolist())
         held = len(vectors.index)
         fetch = count * 2 if passing is None else int(count * held / len(passing) * 2)
+        if passing is not None:
+            allowed = np.zeros(len(self.rows), bool)
+            allowed[passing] = True
         while held:
             keys = vectors.nearest(vector, fetch)
             if passing is not None:
-                at = np.minimum(np.searchsorted(passing, keys), len(passing) - 1)
-                keys = keys[passing[at] == keys]
+                keys = keys[allowed[keys]]
             if len(keys) >= count or fetch >= held:
                 return set(keys[:count].tolist())
             fetch *= 4
@@ -556,6 +561,10 @@ class SimilarityIndex:
                       {name: round(float(s[i]), 4) for name, s in scores.items()
                        if not np.isnan(s[i])})
                 for i in order]
+
+
+def _kth_largest(values: np.ndarray, k: int) -> float:
+    return np.partition(values, len(values) - k)[len(values) - k]
 
 
 @functools.cache

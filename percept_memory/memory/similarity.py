@@ -65,10 +65,10 @@ PROGRESS_EVERY = 100  # chunks: a build from a large database logs how far it is
 # When a filter passes at most this many rows they are searched exactly. Exact is always right,
 # a filtered graph search is not: the nearest rows passing a narrow filter are often far, where
 # the graph finds few of them (a robot and a day, 7 % of a million rows: the true top 10 for 1
-# query of 150); so exact as long as it stays cheap: its cost is the rows', ~0.05 us each.
+# query of 150); so exact as long as it stays cheap: its cost is the rows', ~0.03 us each.
 EXACT_ROWS = 100_000
 SCORE_BLOCK = 2048  # rows gathered and scored at a time (~1 MB of 144 floats: in the cache)
-HALF_MAX = float(np.finfo(np.float16).max)  # a vector with a larger value is scanned in float32
+HALF_MAX = float(np.finfo(np.float16).max)  # past it a descriptor is scanned in float32
 HALF_ROUNDING = 2.0**-11  # float16's relative rounding error (to nearest), normal numbers
 HALF_SUBNORMAL = 2.0**-25  # its absolute rounding error below them
 SUM_ROUNDING = float(np.finfo(np.float32).eps)  # per term, bounds a float32 sum's own error

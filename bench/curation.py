@@ -109,13 +109,13 @@ def split_off(store) -> tuple[float, dict]:
     seen = store.objects.find_one(sort=[("observations", -1)])
     theirs = [c["_id"] for c in store.clusters.find({"object_id": seen["_id"]}).sort(
         "search.time", 1)]
-    later = theirs[len(theirs) // 2:]
-    made = []
-    seconds = rebuilt_after(store, lambda: made.extend(
-        curation.split(store, seen["_id"], later, author="bench")))
+    earlier, later = theirs[:len(theirs) // 2], theirs[len(theirs) // 2:]
+    seconds = rebuilt_after(store, lambda: curation.split(store, seen["_id"], later,
+                                                          author="bench"))
     objects = {c["_id"]: c.get("object_id") for c in store.clusters.find(
         {"_id": {"$in": theirs}}, {"object_id": 1})}
-    apart = sum(objects[m.apart_from] != objects[c] for m, c in zip(made, later, strict=True))
+    rest = {objects[c] for c in earlier}
+    apart = sum(objects[c] not in rest for c in later)
     return seconds, {"observations": len(theirs), "split_off": len(later), "kept_apart": apart,
                      "objects_now": len(set(objects.values()))}
 

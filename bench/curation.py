@@ -10,7 +10,8 @@ On the kitchen week (--days days, consolidated) in a scratch database:
   has rebuilt it (the whole map: the cost grows with the map's scenes), and the same for the
   undo;
 - split: the latest half of the observations of the object seen most often split off (a
-  rebuild too), and whether identity kept each apart from the observation it names.
+  rebuild too), and how many of them identity then kept off every object an observation of
+  the rest was taken for (all, if it did as asked).
 
 Usage: python bench/curation.py [--days N] [--repeat N]
 """

@@ -14,6 +14,7 @@ from bson import ObjectId
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory import curation
+from percept_memory.memory.consolidation import naming_splits
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.pipeline import request_rebuild
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
@@ -183,6 +184,14 @@ def test_a_split_keeps_the_two_sides_apart_after_a_rebuild_until_undone(memory, 
     settle(memory)
     assert len(set(objects_of(memory, clusters))) == 1
     assert memory.db[OBJECTS].count_documents({}) == objects
+
+
+def test_identity_finds_a_scenes_splits_from_their_indexes(memory):
+    scene = memory.scenes.find_one()
+    plan = json.dumps(memory.clusters.find(naming_splits(scene["clusters"])).explain(),
+                      default=str)
+    assert "COLLSCAN" not in plan
+    assert '"split_off"' in plan and '"split_apart_from"' in plan
 
 
 def test_no_merge_joins_what_a_split_keeps_apart(memory):

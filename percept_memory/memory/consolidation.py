@@ -225,11 +225,8 @@ class Consolidation:
     def _splits(self, cluster_ids: set, session) -> list[DifferentObject]:
         """The splits in force that name any of these clusters, on either side (few: the
         split indexes hold only the clusters that carry one)."""
-        ids = list(cluster_ids)
-        found = self.store.clusters.find(
-            {"$or": [{"annotations.split_off": {"$in": ids}},
-                     {"annotations.apart_from": {"$in": ids}}]},
-            {"annotations": 1}, session=session)
+        found = self.store.clusters.find(naming_splits(cluster_ids), {"annotations": 1},
+                                         session=session)
         return [split for doc in found for split in splits(
             decode(a) for a in doc["annotations"] if "author" in a)]
 
@@ -352,6 +349,14 @@ class Consolidation:
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
+
+
+def naming_splits(cluster_ids) -> dict:
+    """The filter of the clusters holding a split that names any of these clusters (schema.py's
+    split indexes)."""
+    ids = list(cluster_ids)
+    return {"$or": [{"annotations.split_off": {"$in": ids}},
+                    {"annotations.apart_from": {"$in": ids}}]}
 
 
 def _known(doc: dict, in_view: bool, seen_as: dict) -> Known:

@@ -319,6 +319,23 @@ def test_an_object_is_split_over_http_and_a_bad_split_is_refused(client, memory)
     assert made["apart_from"] == [str(c) for c in theirs[::2]]
     (row,) = client.get("/api/corrections?limit=1").json()["corrections"]
     assert (row["kind"], row["id"], row["cluster_id"]) == ("split", made["_id"], str(theirs[1]))
+    split, kept = len(made["split_off"]), len(made["apart_from"])
+    assert f"split of {split} observations from {kept}" in client.get(
+        f"/clusters/{theirs[1]}").text  # with its Undo
+    assert f"{split} observations split off as another object, apart from {kept} others" in (
+        client.get("/corrections").text)
+
+
+def test_a_split_of_the_older_kind_is_listed_not_crashed_on(client, memory):
+    """(Before splits named both sides, one kept its cluster apart from one other.)"""
+    holder, other = (c["_id"] for c in clusters_of_objects(memory, 2, skip=60))
+    memory.clusters.update_one({"_id": holder}, {"$push": {"annotations": {
+        "_type": "pm.annotation.DifferentObject", "_id": ObjectId(), "source": "human",
+        "author": "old", "time": 1, "apart_from": other}}})
+    (row,) = client.get("/api/corrections?author=old").json()["corrections"]
+    assert (row["split_off"], row["apart_from"]) == ([str(holder)], [str(other)])
+    page = client.get("/corrections?author=old")
+    assert "1 observations split off as another object, apart from 1 others" in page.text
 
 
 def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(memory):

@@ -203,14 +203,23 @@ def _row(row: dict, undone_by: dict | None) -> dict:
     return {"id": said["_id"], "kind": KINDS.get(said.get("_type"), said.get("_type")),
             "author": said.get("author"), "time": said.get("time"),
             "label": said.get("class_name"), "reason": said.get("reason") or None,
-            "other": said.get("other"), "split_off": said.get("split_off"),
-            "apart_from": said.get("apart_from"),
+            "other": said.get("other"), **_sides(said, row["_id"]),
             "undoes": said.get("undoes"), "cluster_id": row["_id"],
             "scene_id": row.get("scene_id"), "object_id": row.get("object_id"),
             "region": row.get("region"),
             "undone_by": None if undone_by is None else {
                 "id": undone_by["_id"], "author": undone_by.get("author"),
                 "time": undone_by.get("time")}}
+
+
+def _sides(said: dict, cluster_id) -> dict:
+    """A split's two sides, as lists. (A split written before splits named both sides kept
+    the cluster holding it apart from one other: identity no longer reads it, the audit
+    still lists it.)"""
+    apart = said.get("apart_from")
+    if apart is None or isinstance(apart, list):
+        return {"split_off": said.get("split_off"), "apart_from": apart}
+    return {"split_off": [cluster_id], "apart_from": [apart]}
 
 
 def counts(store: MemoryStore) -> dict[str, int]:

@@ -216,9 +216,8 @@ class Consolidation:
         if not others:
             return {}
         later.write()  # the links of this batch's earlier scenes are read
-        objects = {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
-            {"_id": {"$in": list(set().union(*others.values()))},
-             "search.time": {"$lt": scene.timestamp}}, {"object_id": 1}, session=session)}
+        objects = self._objects_of(list(set().union(*others.values())), session,
+                                   before=scene.timestamp)
         return {key: {objects[c] for c in apart if objects.get(c) is not None}
                 for key, apart in others.items()}
 
@@ -243,10 +242,13 @@ class Consolidation:
                 return True
         return False
 
-    def _objects_of(self, cluster_ids: list, session) -> dict:
-        """Cluster id -> the object identity took it for (None: none, or not decided yet)."""
+    def _objects_of(self, cluster_ids: list, session, before: int | None = None) -> dict:
+        """Cluster id -> the object identity took it for (None: none, or not decided yet);
+        `before`: only the clusters of earlier scenes (during a rebuild, a later one is still
+        linked to an object of the belief the rebuild forgot)."""
+        earlier = {} if before is None else {"search.time": {"$lt": before}}
         return {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
-            {"_id": {"$in": cluster_ids}}, {"object_id": 1}, session=session)}
+            {"_id": {"$in": cluster_ids}, **earlier}, {"object_id": 1}, session=session)}
 
     def _remembered_twice(self, decisions: list[Decision], clusters: dict,
                           session) -> list:

@@ -894,9 +894,7 @@ def _made(make, *args) -> None:
             made = make(store, *args)
         except curation.NotCorrectable as error:
             raise click.ClickException(str(error)) from None
-    for correction in made if isinstance(made, list) else [made]:
-        click.echo(f"{curation.KINDS[correction.type_name]} {correction.id} by "
-                   f"{correction.author}")
+    click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
 
 
 @correct.command(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
@@ -939,8 +937,8 @@ def merge(cluster, other, author: str) -> None:
 @click.argument("clusters", nargs=-1, required=True, callback=_object_ids)
 @_author_option
 def split(object_id, clusters, author: str) -> None:
-    """Say the observations CLUSTERS of OBJECT show another object (its map's belief is
-    rebuilt: identity keeps each apart from the object's earliest other observation)."""
+    """Say the observations CLUSTERS of OBJECT show another object than its other
+    observations (its map's belief is rebuilt: identity keeps the two sides apart)."""
     from percept_memory.memory import curation
 
     _made(curation.split, object_id, list(clusters), author)
@@ -976,8 +974,9 @@ def corrections(settings: Settings, author: str | None, limit: int, as_json: boo
     if not rows:
         raise click.ClickException("no corrections" + (f" by {author}" if author else ""))
     for row in rows:
-        what = (row["label"] or row["reason"] or row["other"] or row["apart_from"]
-                or row["undoes"] or "")
+        what = (row["label"] or row["reason"] or row["other"] or row["undoes"]
+                or (row["split_off"] and f"{len(row['split_off'])} split off from "
+                                          f"{len(row['apart_from'])}") or "")
         undone = f"  (undone by {row['undone_by']['author']})" if row["undone_by"] else ""
         click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} cluster "
                    f"{row['cluster_id']}  {what}{undone}")

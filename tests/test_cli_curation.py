@@ -54,11 +54,13 @@ def test_a_split_from_the_command_line(env, store):
     made = pmem(env, "correct", "split", str(obj["_id"]), *map(str, clusters),
                 "--author", "ana")
     assert made.exit_code == 0, made.output
-    lines = [line.split() for line in made.output.strip().splitlines()]
-    assert [(kind, author) for kind, _, _, author in lines] == [("split", "ana")] * 2
-    rows = json.loads(pmem(env, "corrections", "--json", "--limit", "2").output)
-    assert {r["kind"] for r in rows} == {"split"} and {r["cluster_id"] for r in rows} == set(
-        map(str, clusters))
+    ((kind, correction, _, author),) = [line.split() for line in made.output.splitlines()]
+    assert (kind, author) == ("split", "ana")
+    (row,) = json.loads(pmem(env, "corrections", "--json", "--limit", "1").output)
+    assert (row["kind"], row["id"], row["cluster_id"]) == ("split", correction, str(clusters[1]))
+    assert sorted(row["split_off"]) == sorted(map(str, clusters))  # the earlier holds it
+    listed = pmem(env, "corrections", "--limit", "1").output
+    assert f"2 split off from {obj['observations'] - 2}" in listed
 
 
 @pytest.mark.parametrize("args, words", [

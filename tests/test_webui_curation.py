@@ -136,7 +136,8 @@ def test_corrections_are_in_the_openapi_description(client):
     paths = client.get("/openapi.json").json()["paths"]
     for path in ("/api/clusters/{cluster_id}/relabel", "/api/clusters/{cluster_id}/reject",
                  "/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
-                 "/api/objects/{object_id}/relabel"):
+                 "/api/objects/{object_id}/relabel", "/api/clusters/{cluster_id}/merge",
+                 "/api/objects/{object_id}/merge", "/api/objects/{object_id}/split"):
         assert {"401", "403", "415", "422"} <= set(paths[path]["post"]["responses"])
     assert "/api/corrections" in paths
 
@@ -301,15 +302,40 @@ def test_an_object_is_split_over_http_and_a_bad_split_is_refused(client, memory)
                          json={"clusters": [str(theirs[-1])], "author": "ana"}), 404)
     assert not memory.clusters.find_one({"object_id": obj["_id"],
                                          "annotations.author": {"$exists": True}})
-    answer = client.post(path, headers=JSON, json={"clusters": [str(c) for c in theirs[-2:]],
-                                                   "author": "ana"})
+    body = {"clusters": [str(c) for c in theirs[1::2]], "author": "ana"}
+    guarded = TestClient(create_app(memory, Settings(token="s3cret", consolidator=False)),
+                         base_url=LOCAL)
+    error_of(guarded.post(path, data=body), 415)  # what a plain form sends
+    error_of(guarded.post(path, headers={**JSON, "origin": "https://evil.example"}, json=body),
+             403)
+    error_of(guarded.post(path, headers=JSON, json=body), 401)
+    assert not memory.clusters.find_one({"object_id": obj["_id"],
+                                         "annotations.author": {"$exists": True}})
+    answer = guarded.post(path, headers={**JSON, "authorization": "Bearer s3cret"}, json=body)
     assert answer.status_code == 201, answer.text
-    made = answer.json()["corrections"]
-    assert [m["_type"] for m in made] == ["pm.annotation.DifferentObject"] * 2
-    assert {m["apart_from"] for m in made} == {str(theirs[0])}
-    rows = client.get("/api/corrections?limit=2").json()["corrections"]
-    assert {(r["kind"], r["apart_from"]) for r in rows} == {("split", str(theirs[0]))}
-    assert "/api/objects/{object_id}/split" in client.get("/openapi.json").json()["paths"]
+    made = answer.json()["correction"]
+    assert made["_type"] == "pm.annotation.DifferentObject"
+    assert made["split_off"] == body["clusters"]
+    assert made["apart_from"] == [str(c) for c in theirs[::2]]
+    (row,) = client.get("/api/corrections?limit=1").json()["corrections"]
+    assert (row["kind"], row["id"], row["cluster_id"]) == ("split", made["_id"], str(theirs[1]))
+    split, kept = len(made["split_off"]), len(made["apart_from"])
+    assert f"split of {split} observations from {kept}" in client.get(
+        f"/clusters/{theirs[1]}").text  # with its Undo
+    assert f"{split} observations split off as another object, apart from {kept} others" in (
+        client.get("/corrections").text)
+
+
+def test_a_split_of_the_older_kind_is_listed_not_crashed_on(client, memory):
+    """(Before splits named both sides, one kept its cluster apart from one other.)"""
+    holder, other = (c["_id"] for c in clusters_of_objects(memory, 2, skip=60))
+    memory.clusters.update_one({"_id": holder}, {"$push": {"annotations": {
+        "_type": "pm.annotation.DifferentObject", "_id": ObjectId(), "source": "human",
+        "author": "old", "time": 1, "apart_from": other}}})
+    (row,) = client.get("/api/corrections?author=old").json()["corrections"]
+    assert (row["split_off"], row["apart_from"]) == ([str(holder)], [str(other)])
+    page = client.get("/corrections?author=old")
+    assert "1 observations split off as another object, apart from 1 others" in page.text
 
 
 def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(memory):
@@ -332,11 +358,13 @@ def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(m
         with tab.expect_navigation():
             tab.keyboard.press("Enter")
         memory_pipeline(memory).drain(timeout=300)
-        now = {c: memory.clusters.find_one({"_id": ObjectId(c)})["object_id"] for c in ticked}
         tab.goto(f"{url}/corrections")
         expect(tab.locator("table.audit tbody tr").first).to_contain_text(
-            "another object than an earlier cluster")
-    rows = curation.audit(memory, 2)
-    assert {r["kind"] for r in rows} == {"split"} and {r["author"] for r in rows} == {"ana"}
-    anchor = rows[0]["apart_from"]
-    assert memory.clusters.find_one({"_id": anchor})["object_id"] not in now.values()
+            "2 observations split off as another object")
+    (row,) = curation.audit(memory, 1)
+    assert (row["kind"], row["author"]) == ("split", "ana")
+    assert sorted(row["split_off"]) == sorted(map(ObjectId, ticked))
+    assert len(row["apart_from"]) == obj["observations"] - 2
+    def objects(ids):
+        return {memory.clusters.find_one({"_id": c})["object_id"] for c in ids}
+    assert not objects(row["split_off"]) & objects(row["apart_from"])

@@ -34,6 +34,8 @@ import numpy as np
 from bson import ObjectId
 from pymongo import UpdateOne
 
+from percept_memory.converters import decode
+
 from . import documents as docs
 from .identity import (
     Calibration,
@@ -49,7 +51,7 @@ from .naming import naming_fields, naming_labels, stored_weights
 from .schema import CALIBRATION, EVENTS, OBJECTS
 from .store import MemoryStore
 from .types import Cluster, Scene
-from .types.curation import apart_from, rejected, same_as
+from .types.curation import DifferentObject, rejected, same_as, splits
 from .view import View
 
 MAX_UNSEEN_CANDIDATES = 32
@@ -137,7 +139,7 @@ class Consolidation:
                  if o["last_cluster"] in seen_as]
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
         new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
-        apart = self._kept_apart(kept, later, session)
+        apart = self._kept_apart(scene, kept, later, session)
         decisions = resolve(new, known, self.params, calibration, apart=apart,
                             now=scene.timestamp)
         self._decoded.update((o.key, o) for o in new)  # the next scenes' candidates' evidence
@@ -174,50 +176,81 @@ class Consolidation:
         if asked or any(d.lookalikes for d in decisions):
             later.write()  # what follows reads the events and moves the links
         merged: dict = {}  # object -> the object it was merged into
-        twins, taken_looks = self._remembered_twice(decisions, clusters, apart, session)
+        twins, taken_looks = self._remembered_twice(decisions, clusters, session)
         for keep, twin in twins:
             self._merge(keep, twin, scene, known_objects, session)
             merged[twin] = keep
         for other, look in taken_looks:
             self._forget_look(other, look, known_objects, session)
-        for keep, twin in self._asked_to_merge(asked, seen_as, apart, session):
+        for keep, twin in self._asked_to_merge(asked, seen_as, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
-            if keep != twin:
+            if keep != twin and not self._split_between(keep, twin, session):
                 self._merge(keep, twin, scene, known_objects, session)
                 merged[twin] = keep
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
 
-    def _asked_to_merge(self, asked: dict, seen_as: dict, apart: dict, session) -> list:
+    def _asked_to_merge(self, asked: dict, seen_as: dict, session) -> list:
         """(object, the object to merge into it): a cluster of this scene is, a person said,
         the same object as an earlier cluster (types/curation.py: SameObject), whose object
-        identity has decided on by now. One kept apart from the other is merged into it,
-        unless a person also said the cluster is not that object (the split stands)."""
+        identity has decided on by now. (Unless a split keeps the two apart: the caller
+        asks.)"""
         if not asked:
             return []  # (no round trip: people ask for few scenes)
         earlier = self._objects_of([c for others in asked.values() for c in others], session)
         return [(seen_as[key], earlier[other]) for key, others in asked.items()
-                for other in others
-                if earlier.get(other) is not None and key in seen_as
-                and earlier[other] not in apart.get(key, ())]
+                for other in others if earlier.get(other) is not None and key in seen_as]
 
-    def _kept_apart(self, clusters: list[Cluster], later: Later, session) -> dict:
-        """Cluster id -> the objects a person said it is not: those of the earlier clusters
-        it was split from (types/curation.py: DifferentObject), decided on by now."""
-        said = {c.id: others for c in clusters if (others := apart_from(c.annotations))}
-        if not said:
+    def _kept_apart(self, scene: Scene, clusters: list[Cluster], later: Later,
+                    session) -> dict:
+        """Cluster id -> the objects a person said it is not: those the clusters on the other
+        side of a split it is on (types/curation.py: DifferentObject) were taken for in the
+        scenes before this one."""
+        ids = {c.id for c in clusters}
+        others: dict = {}
+        for split in self._splits(ids, session):
+            one, other = split.sides()
+            for side, apart in ((one, other), (other, one)):
+                for key in side & ids:
+                    others.setdefault(key, set()).update(apart)
+        if not others:
             return {}
         later.write()  # the links of this batch's earlier scenes are read
-        objects = self._objects_of([c for others in said.values() for c in others], session)
-        return {key: {objects[c] for c in others if objects.get(c) is not None}
-                for key, others in said.items()}
+        objects = self._objects_of(list(set().union(*others.values())), session,
+                                   before=scene.timestamp)
+        return {key: {objects[c] for c in apart if objects.get(c) is not None}
+                for key, apart in others.items()}
 
-    def _objects_of(self, cluster_ids: list, session) -> dict:
-        """Cluster id -> the object identity took it for (None: none, or not decided yet)."""
+    def _splits(self, cluster_ids: set, session) -> list[DifferentObject]:
+        """The splits in force that name any of these clusters, on either side (few: the
+        split indexes hold only the clusters that carry one)."""
+        found = self.store.clusters.find(naming_splits(cluster_ids), {"annotations": 1},
+                                         session=session)
+        return [split for doc in found for split in splits(
+            decode(a) for a in doc["annotations"] if "author" in a)]
+
+    def _split_between(self, a, b, session) -> bool:
+        """Whether a person split observations of object `a` from observations of `b` (then
+        no merge makes them one object again)."""
+        theirs: dict = {a: set(), b: set()}
+        for doc in self.store.clusters.find({"object_id": {"$in": [a, b]}}, {"object_id": 1},
+                                            session=session):
+            theirs[doc["object_id"]].add(doc["_id"])
+        for split in self._splits(theirs[a] | theirs[b], session):
+            one, other = split.sides()
+            if (one & theirs[a] and other & theirs[b]) or (one & theirs[b] and other & theirs[a]):
+                return True
+        return False
+
+    def _objects_of(self, cluster_ids: list, session, before: int | None = None) -> dict:
+        """Cluster id -> the object identity took it for (None: none, or not decided yet);
+        `before`: only the clusters of earlier scenes (during a rebuild, a later one is still
+        linked to an object of the belief the rebuild forgot)."""
+        earlier = {} if before is None else {"search.time": {"$lt": before}}
         return {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
-            {"_id": {"$in": cluster_ids}}, {"object_id": 1}, session=session)}
+            {"_id": {"$in": cluster_ids}, **earlier}, {"object_id": 1}, session=session)}
 
-    def _remembered_twice(self, decisions: list[Decision], clusters: dict, apart: dict,
+    def _remembered_twice(self, decisions: list[Decision], clusters: dict,
                           session) -> list:
         """(object, its twin): an object seen now that looks beyond doubt like another known
         object not seen now, the two never seen together in one scene: one object
@@ -230,8 +263,9 @@ class Consolidation:
             if decision.key not in clusters or decision.object is None:
                 continue
             for other, look in decision.lookalikes.items():
-                if other not in taken and other not in apart.get(decision.key, ()) \
-                        and not self._seen_together(decision.object, other, session):
+                if other not in taken \
+                        and not self._seen_together(decision.object, other, session) \
+                        and not self._split_between(decision.object, other, session):
                     pairs.append((decision.object, other))
                     taken.add(other)
                 else:
@@ -317,6 +351,14 @@ class Consolidation:
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
+
+
+def naming_splits(cluster_ids) -> dict:
+    """The filter of the clusters holding a split that names any of these clusters (schema.py's
+    split indexes)."""
+    ids = list(cluster_ids)
+    return {"$or": [{"annotations.split_off": {"$in": ids}},
+                    {"annotations.apart_from": {"$in": ids}}]}
 
 
 def _known(doc: dict, in_view: bool, seen_as: dict) -> Known:

@@ -43,6 +43,7 @@ from .types.curation import (
 
 AUDIT_LIMIT = 1000
 SPLIT_LIMIT = 1000  # observations split off at once
+OBSERVATIONS_LIMIT = 100_000  # of an object split: a split names them all (in one document)
 KINDS = {name_of(Relabel): "relabel", name_of(Rejection): "reject",
          name_of(SameObject): "merge", name_of(DifferentObject): "split",
          name_of(Undo): "undo"}
@@ -80,34 +81,34 @@ def merge(store: MemoryStore, cluster_id: ObjectId, other_id: ObjectId,
 
 
 def split(store: MemoryStore, object_id: ObjectId, cluster_ids: list[ObjectId],
-          author: str) -> list[DifferentObject]:
-    """Say these observations of the object show another object: each is kept apart from the
-    object's earliest other observation (one correction per pair, stored on the later of the
-    two, naming the earlier, as a merge is). Identity then decides the map again: the
-    observations split off go together to another object, by their likeness, unless a
-    person says more."""
+          author: str) -> DifferentObject:
+    """Say these observations of the object show another object than the rest of its
+    observations: one correction, stored on the earliest of them, naming both sides. Identity
+    then decides the map again and never takes an observation of one side for an object one
+    of the other side was taken for: those split off go to another object (together, by
+    their likeness, unless a person says more)."""
     cluster_ids = list(dict.fromkeys(cluster_ids))
     if not 0 < len(cluster_ids) <= SPLIT_LIMIT:
         raise NotCorrectable(f"clusters: name 1 to {SPLIT_LIMIT} observations of the object "
                              "to split off", "clusters")
     if store.db[OBJECTS].find_one({"_id": object_id}, {"_id": 1}) is None:
         raise NotFound("object", object_id)
-    theirs = {doc["_id"] for doc in store.db[CLUSTERS].find(
-        {"_id": {"$in": cluster_ids}, "object_id": object_id}, {"_id": 1})}
-    if stray := [key for key in cluster_ids if key not in theirs]:
+    theirs = [doc["_id"] for doc in store.db[CLUSTERS].find(
+        {"object_id": object_id}, {"_id": 1}).sort(
+        [("object_id", ASCENDING), ("search.time", ASCENDING)]).limit(OBSERVATIONS_LIMIT + 1)]
+    if len(theirs) > OBSERVATIONS_LIMIT:
+        raise NotCorrectable(f"object {object_id} has more than {OBSERVATIONS_LIMIT} "
+                             "observations: too many to split")
+    named, known = set(cluster_ids), set(theirs)
+    if stray := [key for key in cluster_ids if key not in known]:
         raise NotCorrectable(f"clusters: {stray[0]} is not an observation of object "
                              f"{object_id}", "clusters")
-    kept = next(store.db[CLUSTERS].find(
-        {"object_id": object_id, "_id": {"$nin": cluster_ids}}, {"_id": 1}).sort(
-        [("object_id", ASCENDING), ("search.time", ASCENDING)]).limit(1), None)
-    if kept is None:
+    if not (rest := [key for key in theirs if key not in named]):
         raise NotCorrectable("clusters: these are all the object's observations: split off "
                              "fewer", "clusters")
-    who = _who(author)
-    return [_append(store, later, lambda earlier=earlier: DifferentObject(
-                apart_from=earlier, **who))
-            for earlier, later in (_in_time_order(store, [kept["_id"], key])
-                                   for key in cluster_ids)]
+    split_off = [key for key in theirs if key in named]  # in time order
+    return _append(store, split_off[0], lambda: DifferentObject(
+        split_off=split_off, apart_from=rest, **_who(author)))
 
 
 def _in_time_order(store: MemoryStore, cluster_ids: list[ObjectId]) -> list[ObjectId]:
@@ -202,13 +203,23 @@ def _row(row: dict, undone_by: dict | None) -> dict:
     return {"id": said["_id"], "kind": KINDS.get(said.get("_type"), said.get("_type")),
             "author": said.get("author"), "time": said.get("time"),
             "label": said.get("class_name"), "reason": said.get("reason") or None,
-            "other": said.get("other"), "apart_from": said.get("apart_from"),
+            "other": said.get("other"), **_sides(said, row["_id"]),
             "undoes": said.get("undoes"), "cluster_id": row["_id"],
             "scene_id": row.get("scene_id"), "object_id": row.get("object_id"),
             "region": row.get("region"),
             "undone_by": None if undone_by is None else {
                 "id": undone_by["_id"], "author": undone_by.get("author"),
                 "time": undone_by.get("time")}}
+
+
+def _sides(said: dict, cluster_id) -> dict:
+    """A split's two sides, as lists. (A split written before splits named both sides kept
+    the cluster holding it apart from one other: identity no longer reads it, the audit
+    still lists it.)"""
+    apart = said.get("apart_from")
+    if apart is None or isinstance(apart, list):
+        return {"split_off": said.get("split_off"), "apart_from": apart}
+    return {"split_off": [cluster_id], "apart_from": [apart]}
 
 
 def counts(store: MemoryStore) -> dict[str, int]:

@@ -77,6 +77,11 @@ INDEXES: dict[str, list[IndexModel]] = {
         # the clusters people corrected, and only those: the audit (memory/curation.py)
         IndexModel([("annotations.author", ASCENDING)], name="corrected",
                    partialFilterExpression=CORRECTED),
+        # the splits people made, by the observations on either side: identity finds those
+        # of a scene's clusters (memory/consolidation.py); only split clusters are in them
+        IndexModel([("annotations.split_off", ASCENDING)], name="split_off", sparse=True),
+        IndexModel([("annotations.apart_from", ASCENDING)], name="split_apart_from",
+                   sparse=True),
         # and the field indexes a user adds (store.add_field_index): `field:<path>`
     ],
     TERMS: [IndexModel([("grams", ASCENDING)], name="grams")],

@@ -134,12 +134,11 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
     @router.post("/api/objects/{object_id}/split",
                  summary="Say some observations of an object show another object", **write)
     async def split_object(object_id: Id, body: Splitting) -> dict[str, Any]:
-        """Each observation in `clusters` is kept apart from the object's earliest other one:
-        identity never takes the two for one object (the map's belief is rebuilt by the
-        memory pipeline). One correction per observation, each stored on the later cluster
-        of its pair and undone there."""
-        made = await correcting(curation.split, object_id, body.clusters, body.author)
-        return {"corrections": [described(m) for m in made]}
+        """The observations in `clusters` show another object than the object's other
+        observations: identity never takes one of either side for an object one of the other
+        side was taken for (the map's belief is rebuilt by the memory pipeline). One
+        correction, stored on the earliest cluster split off and undone there."""
+        return await corrected(curation.split, object_id, body.clusters, body.author)
 
     @router.post("/api/clusters/{cluster_id}/corrections/{correction_id}/undo",
                  summary="Take a correction back", **write)
@@ -209,8 +208,10 @@ def described(correction: Correction) -> dict[str, Any]:
     return correction.model_dump(mode="json", by_alias=True)
 
 
-def as_json(row: dict) -> dict:
+def as_json(value: Any) -> Any:
     """An audit row with its ids as strings."""
-    return {key: (str(value) if isinstance(value, ObjectId)
-                  else as_json(value) if isinstance(value, dict) else value)
-            for key, value in row.items()}
+    if isinstance(value, dict):
+        return {key: as_json(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [as_json(item) for item in value]
+    return str(value) if isinstance(value, ObjectId) else value

@@ -1,6 +1,7 @@
 """The scene log's histogram of scenes over time: the span of the scenes its filters select,
 in BARS equal stretches, each a bar as tall as its scenes and a link that sets the log's time
-range to it (brushing by link: it works from the keyboard and without a script).
+range to it (it works from the keyboard and without a script; static/brush.js adds a drag
+across bars, setting the range to their stretch).
 
 Where the span starts and ends is read from the `newest` index (or a filter's own index paired
 with time, schema.py), and the bars are counted in one command (facets.py's way, without a

@@ -6,8 +6,9 @@ changes), carrying who made it and when. The latest correction in force decides:
 - `Rejection`: this detection is wrong, there is no object here;
 - `SameObject`: the object seen here is the one seen in another, earlier cluster (two
   objects the memory holds apart are one: they are merged);
-- `DifferentObject`: the object seen here is not the one seen in another, earlier cluster (one
-  object the memory made of two is split: identity keeps the two clusters apart);
+- `DifferentObject`: the clusters split off show another object than the rest of the
+  object's observations (one object the memory made of two is split: identity keeps the two
+  sides apart);
 - `Undo`: takes back an earlier correction; itself recorded, so the audit keeps both.
 
 Which correction is in force depends on the set of annotations, never on the order they were
@@ -68,11 +69,17 @@ class SameObject(Correction):
 
 @stored_type("pm.annotation.DifferentObject")
 class DifferentObject(Correction):
-    """A person says the object seen here is not the one seen in the cluster `apart_from`, an
-    earlier observation of the same map: identity never takes this cluster for the object
-    that cluster is, nor merges the two objects, when it reaches this one."""
+    """A person says the clusters `split_off` (this one among them) show another object than
+    the clusters `apart_from` (the rest of the observations of the object they were all taken
+    for): identity never takes a cluster of one side for an object a cluster of the other side
+    was taken for, nor merges two such objects. One correction for the whole split, stored on
+    the earliest cluster split off, so one undo takes it back."""
 
-    apart_from: Id
+    split_off: Annotated[list[Id], Field(min_length=1)]
+    apart_from: Annotated[list[Id], Field(min_length=1)]
+
+    def sides(self) -> tuple[frozenset, frozenset]:
+        return frozenset(self.split_off), frozenset(self.apart_from)
 
 
 @stored_type("pm.annotation.Undo")
@@ -107,14 +114,15 @@ def same_as(annotations: Iterable) -> list:
     return sorted({a.other for a in in_force(annotations) if isinstance(a, SameObject)})
 
 
-def apart_from(annotations: Iterable) -> list:
-    """The earlier clusters a person said show another object than these annotations' cluster."""
-    return sorted({a.apart_from for a in in_force(annotations) if isinstance(a, DifferentObject)})
+def splits(annotations: Iterable) -> list[DifferentObject]:
+    """The splits in force that these annotations hold."""
+    return [a for a in in_force(annotations) if isinstance(a, DifferentObject)]
 
 
-def identity_said(annotations: Iterable) -> tuple[bool, list, list]:
+def identity_said(annotations: Iterable) -> tuple[bool, list, set]:
     """What people said that identity decides on: whether the cluster is no object at all,
-    which earlier clusters show its object and which show another. A correction that changes
-    it rebuilds the map's belief (memory/curation.py)."""
+    which earlier clusters show its object, and which observations it keeps apart (the
+    splits it holds). A correction that changes it rebuilds the map's belief
+    (memory/curation.py)."""
     annotations = list(annotations)
-    return rejected(annotations), same_as(annotations), apart_from(annotations)
+    return rejected(annotations), same_as(annotations), {s.sides() for s in splits(annotations)}

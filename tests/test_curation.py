@@ -14,7 +14,7 @@ from bson import ObjectId
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory import curation
-from percept_memory.memory.consolidation import naming_splits
+from percept_memory.memory.consolidation import ANY_SPLIT, naming_splits
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.pipeline import request_rebuild
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
@@ -192,6 +192,9 @@ def test_identity_finds_a_scenes_splits_from_their_indexes(memory):
                       default=str)
     assert "COLLSCAN" not in plan
     assert '"split_off"' in plan and '"split_apart_from"' in plan
+    # and whether there is any split at all, asked once per batch, from the sparse index
+    plan = json.dumps(memory.clusters.find(ANY_SPLIT).limit(1).explain(), default=str)
+    assert "COLLSCAN" not in plan and '"split_off"' in plan
 
 
 def test_no_merge_joins_what_a_split_keeps_apart(memory):

@@ -83,6 +83,7 @@ class Consolidation:
         # merge that object into another), for the stages after this one in the batch
         self.decided: dict = {}
         self._known: dict[str, KnownObjects] = {}  # map -> its objects, as last written
+        self._any_split = True  # whether people split any object (asked once per batch)
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
@@ -94,6 +95,9 @@ class Consolidation:
         known.version = ObjectId()  # the version this transaction writes, if it commits
         later = Later(self.objects, self.events, self.store.clusters, session)
         self.decided = {}
+        # one round trip a batch, not one a scene: splits are rare, most stores have none
+        self._any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
+                                                       session=session) is not None
         for scene, arrived in self._scenes(scene_ids, session):
             self.consolidate(scene, arrived, calibration, known, later, session)
         later.write()
@@ -224,6 +228,8 @@ class Consolidation:
     def _splits(self, cluster_ids: set, session) -> list[DifferentObject]:
         """The splits in force that name any of these clusters, on either side (few: the
         split indexes hold only the clusters that carry one)."""
+        if not self._any_split:
+            return []
         found = self.store.clusters.find(naming_splits(cluster_ids), {"annotations": 1},
                                          session=session)
         return [split for doc in found for split in splits(
@@ -351,6 +357,9 @@ class Consolidation:
         # in an order of the stored data's own (not of the objects' ids, made afresh by a
         # rebuild), so that a rebuild decides the same, to the last bit
         return sorted(in_sight, key=lambda c: c[0]["last_cluster"]) + unseen
+
+
+ANY_SPLIT = {"annotations.split_off": {"$exists": True}}  # (the sparse split_off index)
 
 
 def naming_splits(cluster_ids) -> dict:

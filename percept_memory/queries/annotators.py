@@ -89,7 +89,9 @@ def report(w: AnnotatorWindow) -> Plan[AnnotatorReport]:
         total.warnings += row["warnings"]
         total.errors += row["errors"]
     for name, total in totals.items():
-        values = [t for (who, _), row in hourly.items() if who == name for t in row["times"]]
+        # sorted: MongoDB's groups come in any order, and a float sum depends on its order
+        values = sorted(t for (who, _), row in hourly.items() if who == name
+                        for t in row["times"])
         if values:
             total.runs, total.mean_ms = len(values), float(np.mean(values))
             total.p95_ms, total.max_ms = float(np.percentile(values, 95)), float(max(values))

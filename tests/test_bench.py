@@ -15,8 +15,8 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 @pytest.mark.parametrize("script, args, keys", [
     ("converter.py", ["--clusters", "20", "--scenes", "6"], {"codec", "store"}),
-    ("ingest.py", ["--scenes", "12", "--batch", "4", "--http-scenes", "8"],
-     {"in_process", "http", "http_ndjson"}),
+    ("ingest.py", ["--scenes", "8", "--batch", "4", "--rounds", "1"],
+     {"in_process_clusters_per_s", "http_to_in_process", "each_round"}),
     ("pipeline.py", ["--days", "1", "--synthetic-scenes", "10", "--lag-scenes", "10",
                      "--rate", "20"], {"throughput", "belief_lag_over_http"}),
     ("identity.py", ["--scenes-per-level", "40", "--levels", "0.025"], {"levels"}),

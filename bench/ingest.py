@@ -25,8 +25,8 @@ from __future__ import annotations
 import argparse
 import gc
 import os
-import statistics
 import socket
+import statistics
 import subprocess
 import sys
 import time

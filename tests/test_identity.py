@@ -122,6 +122,18 @@ def test_a_hidden_object_moved_into_view_is_a_move():
                                                    "n-tea": ("tea", MOVE)}
 
 
+def test_an_object_that_looks_nothing_like_it_was_not_moved_here():
+    """A move needs the look: an object out of view that looks nothing like the new
+    observation, with no other look known, is no likelier moved here than a magazine that is
+    a cup (before, its missing other looks counted as odds 1, so every such object held a
+    move's prior: a tenth of the decision's probability went to them)."""
+    others = [known(f"magazine-{k}", 3.0 + k, 0.0, magazine(), in_view=False) for k in range(5)]
+    decision = resolve([obs("n", 0.0, 0.0, cup())], others, DEFAULTS)[0]
+    assert (decision.object, decision.explanation) == (None, APPEAR)
+    assert decision.probability > 0.999
+    assert all(a.probability < 1e-3 for a in decision.alternatives[1:])
+
+
 def test_of_two_lookalikes_the_one_seen_last_is_the_one_moved_here():
     """One object remembered twice: both ids have its look. Moved again, it is the id seen
     last, not a coin flip."""

@@ -473,7 +473,7 @@ class Calibration:
 
 
 def explanations(look: float, place: float, in_view: bool, params: Parameters,
-                 other: float = 1.0, superseded: bool = False, staying: float = 1.0) -> dict:
+                 other: float = 0.0, superseded: bool = False, staying: float = 1.0) -> dict:
     """Likelihood of each way the new observation could be the known object, relative to its
     being another object, from the odds of "looks the same" (as it last looked; `other`: as
     the best of its other known looks) and "is at the same place"; `superseded`: another
@@ -597,9 +597,11 @@ def _other_looks(new: Sequence[Observation], known: Sequence[Known],
                  calibration: Calibration, params: Parameters
                  ) -> tuple[np.ndarray, list, np.ndarray]:
     """For every (new, known) pair, the odds that the new one looks the same as the best of
-    the known object's other looks (1 where it has none), that look's key when those odds
-    are above 1 (else None), and when that look was last seen (0 where none)."""
-    odds = np.ones((len(new), len(known)))
+    the known object's other looks, that look's key, and when that look was last seen; 0,
+    None and 0 where it has none (no other look makes a move or a turn likelier: with odds
+    of 1, an object that looks nothing like the new observation was as likely moved here
+    as one that looks like it)."""
+    odds = np.zeros((len(new), len(known)))
     seen = np.zeros((len(new), len(known)))
     keys: list[list] = [[None] * len(known) for _ in new]
     others = [(j, other, when) for j, k in enumerate(known)

@@ -8,9 +8,13 @@ strictly in (time, scene id) order and apply every stage (identity consolidation
 lookups, ...) to a batch of scenes in one transaction that also removes the batch's entries:
 each stage's writes land exactly once or not at all, whoever dies when.
 
-- One writer per map: a lease in `maps` (owner, token, until), taken when free or expired and
-  checked in every stage transaction (a fence: a consolidator that lost its lease, paused
-  longer than the lease, cannot commit). Any number of maps go in parallel, in any process.
+- One writer per map: a lease in `maps` (owner, token, until, session), taken when free or
+  expired and checked in every stage transaction (a fence: a consolidator that lost its lease,
+  paused longer than the lease, cannot commit). Any number of maps go in parallel, in any
+  process. A consolidator killed inside a transaction leaves it open on the server, holding
+  the map's document for the server's transaction lifetime (a minute by default, then reaped:
+  90 s measured); so the lease names the session its transactions run in, and whoever takes
+  an expired lease over kills that session first, aborting what it left open.
 - Failures are retried with exponential backoff while the map waits, so its order holds.
   After `max_attempts` a scene is *held*: kept with its error and shown (`pmem pipeline`,
   GET /api/pipeline, the /pipeline page), and the scenes behind it go on: one bad scene never
@@ -45,7 +49,13 @@ from typing import Any, Protocol
 
 from bson import ObjectId
 from pymongo import ASCENDING, ReturnDocument
-from pymongo.errors import BulkWriteError, ConnectionFailure, DuplicateKeyError, PyMongoError
+from pymongo.errors import (
+    BulkWriteError,
+    ConnectionFailure,
+    DuplicateKeyError,
+    OperationFailure,
+    PyMongoError,
+)
 
 from .documents import outbox_entry
 from .schema import MAPS, OUTBOX, SCENES
@@ -241,22 +251,25 @@ class Pipeline:
     # --- one map ---------------------------------------------------------------------------
 
     def _work_on(self, map_name: str) -> int:
-        lease = self._acquire(map_name)
-        if lease is None:
-            return 0
-        token = lease["lease"]["token"]
-        try:
-            if lease.get("rebuild"):
-                self._rebuild(map_name, token)
-                lease["consolidated"] = None
-            return self._consolidate(map_name, token, lease.get("consolidated"))
-        except LeaseLost:
-            log.warning("pipeline: lost the lease of map %r to another consolidator", map_name)
-            return 0
-        finally:
-            self.maps.update_one({"_id": map_name, "lease.token": token}, {"$set": {"lease": None}})
+        with self.store.client.start_session() as session:  # the lease's transactions
+            lease = self._acquire(map_name, session)
+            if lease is None:
+                return 0
+            token = lease["lease"]["token"]
+            try:
+                if lease.get("rebuild"):
+                    self._rebuild(map_name, token)
+                    lease["consolidated"] = None
+                return self._consolidate(map_name, token, lease.get("consolidated"), session)
+            except LeaseLost:
+                log.warning("pipeline: lost the lease of map %r to another consolidator",
+                            map_name)
+                return 0
+            finally:
+                self.maps.update_one({"_id": map_name, "lease.token": token},
+                                     {"$set": {"lease": None}})
 
-    def _consolidate(self, map_name: str, token: ObjectId, watermark) -> int:
+    def _consolidate(self, map_name: str, token: ObjectId, watermark, session) -> int:
         """The map's due entries in order, a batch per transaction; a batch that fails is
         tried scene by scene, so only the failing scene waits and is counted against."""
         count, size = 0, self.batch
@@ -271,7 +284,7 @@ class Pipeline:
                 watermark = None
                 continue
             try:
-                self._apply(map_name, token, entries)
+                self._apply(map_name, token, entries, session)
             except (LeaseLost, ConnectionFailure):  # not the scene's fault: try again later
                 raise
             except Exception as error:  # any stage's failure: kept with the scene, retried
@@ -296,7 +309,7 @@ class Pipeline:
             entries.append(entry)
         return entries
 
-    def _apply(self, map_name: str, token: ObjectId, entries: list[dict]) -> None:
+    def _apply(self, map_name: str, token: ObjectId, entries: list[dict], session) -> None:
         ids = [entry["_id"] for entry in entries]
         last = entries[-1]
 
@@ -319,7 +332,7 @@ class Pipeline:
                         raise StageFailed(stage.name, error) from error
             self.outbox.delete_many({"_id": {"$in": ids}}, session=session)
 
-        self.store._transaction(work)
+        self.store._transaction(work, session=session)
         self._committed.set()
 
     def _failed(self, entry: dict, error: Exception) -> None:
@@ -335,17 +348,33 @@ class Pipeline:
 
     # --- leases and rebuilds ---------------------------------------------------------------
 
-    def _acquire(self, map_name: str) -> dict | None:
-        """The map's document with a fresh lease of ours, or None when another holds it."""
+    def _acquire(self, map_name: str, session) -> dict | None:
+        """The map's document with a fresh lease of ours, its transactions to run in
+        `session`; None when another holds it. The session of an expired lease is killed
+        first (a read is not held up by what a transaction left open; the write would be)."""
         now = utc_now()
+        expired = self.maps.find_one({"_id": map_name, "lease.until": {"$lt": now}},
+                                     {"lease.session": 1})
+        if expired and expired["lease"].get("session"):
+            self._kill(expired["lease"]["session"])
         try:
             return self.maps.find_one_and_update(
                 {"_id": map_name, "$or": [{"lease": None}, {"lease.until": {"$lt": now}}]},
                 {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
-                                    "until": now + self.lease}}},
+                                    "until": now + self.lease,
+                                    "session": session.session_id}}},
                 upsert=True, return_document=ReturnDocument.AFTER)
         except DuplicateKeyError:
             return None
+
+    def _kill(self, session_id: dict) -> None:
+        """Abort whatever the session of a lease that ran out left open (its consolidator
+        died or lost the lease): without the right to, the server's own reaping is waited
+        out."""
+        try:
+            self.store.client.admin.command("killSessions", [session_id])
+        except OperationFailure as error:
+            log.warning("pipeline: could not end an expired lease's session (%s)", error)
 
     def _rebuild(self, map_name: str, token: ObjectId) -> None:
         """Forget the map's belief and queue every scene of the map for the belief stages

@@ -488,10 +488,11 @@ class MemoryStore(StoreBase):
             self.clusters.insert_many(written.clusters, session=session)
         self.outbox.insert_many(written.outbox, session=session)
 
-    def _transaction(self, work, retry_unreachable: bool = True):
-        """Run work(session) in a transaction. pymongo retries it for two minutes while no
-        server can be selected; with `retry_unreachable=False` that is an Unavailable error
-        at once instead (an ingest's caller decides whether to send again)."""
+    def _transaction(self, work, retry_unreachable: bool = True, session=None):
+        """Run work(session) in a transaction, in a session of its own or the one given.
+        pymongo retries it for two minutes while no server can be selected; with
+        `retry_unreachable=False` that is an Unavailable error at once instead (an ingest's
+        caller decides whether to send again)."""
 
         def attempt(session):
             try:
@@ -501,8 +502,10 @@ class MemoryStore(StoreBase):
                     raise
                 raise Unavailable(f"not stored: {reason(error)}") from None
 
-        with self.client.start_session() as session:
+        if session is not None:
             return session.with_transaction(attempt)
+        with self.client.start_session() as own:
+            return own.with_transaction(attempt)
 
     def _catalogue(self, written: docs.Documents) -> None:
         """After a commit: record the stored types in `types` and the words new to this

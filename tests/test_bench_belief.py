@@ -4,6 +4,7 @@ memory could know it (no database: the run's bookkeeping alone)."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -64,3 +65,23 @@ def test_moved_and_turned_to_a_side_never_seen_is_a_new_object(run):
     run.world.side[0] = 0
     assert run.expected_id(0) is None
     assert run.known_look(0, {"K": object()}) is None
+
+
+def test_where_is_is_scored_apart_for_the_objects_not_moved_since_last_observed(run):
+    """An object brought back unseen to the table it was last observed on, at another spot,
+    was moved unseen: a memory that saw it go rightly says "disappeared". It is not among
+    the objects a memory can know, as "still on the table last seen on" once counted it."""
+    import belief
+
+    answers = {"K": {"state": "disappeared", "region": "table_0", "position": [0.2, 0.1, 0]}}
+    run.decider = SimpleNamespace(server=SimpleNamespace(where_is=answers.get))
+    run.where_samples = 1
+    extra = belief.Extra()
+    run.world.place[0] = np.array([-0.3, 0.2])  # back on table 0, elsewhere
+    run.where(extra)
+    assert (extra.right_table, extra.right_table_unmoved) == ([0, 1], [0, 0])
+    run.world.place[0] = np.array([0.2, 0.1])  # where it was last observed, believed hidden
+    answers["K"]["state"] = "hidden"
+    run.where(extra)
+    assert (extra.right_table, extra.right_table_unmoved) == ([1, 2], [1, 1])
+    assert extra.near_unmoved == [1, 1]

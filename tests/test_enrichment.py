@@ -360,6 +360,51 @@ def test_worker_killed_mid_lookup_job_done_once_by_another(fresh, mongo_uri, db_
     assert len(server.requests) == 2
 
 
+KILLED_INSIDE_ITS_TRANSACTION = """
+import asyncio, sys
+from pymongo import AsyncMongoClient
+from percept_memory.ingest.jobs import JobQueue
+from percept_memory.memory.schema import CLUSTERS, JOBS
+
+async def main(uri, db):
+    client = AsyncMongoClient(uri)
+    queue = JobQueue(client[db][JOBS], lease_s=1, max_attempts=5, backoff_s=1)
+    job = await queue.claim("doomed")
+    await job.session.start_transaction()  # as the worker's append does: the cluster is held
+    await client[db][CLUSTERS].update_one({"_id": job.cluster_id}, {"$set": {"held": 1}},
+                                          session=job.session)
+    print("open", flush=True)
+    await asyncio.sleep(600)
+
+asyncio.run(main(*sys.argv[1:]))
+"""
+
+
+def test_a_worker_killed_inside_its_transaction_holds_its_cluster_only_until_taken_over(
+        fresh, mongo_uri, db_name):
+    """The transaction a killed worker left open holds its cluster (and the cluster's object,
+    which the consolidator of its map writes) until the server reaps it, 90 s later; the
+    worker that takes the job over kills that session first, and finishes in seconds."""
+    ingest(fresh, [scene_with_crops([cut(kitchen_frame(), MUESLI_BOX)], 1)])
+    doomed = subprocess.Popen([sys.executable, "-c", KILLED_INSIDE_ITS_TRANSACTION, mongo_uri,
+                               db_name], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ,
+                                   "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    try:
+        assert doomed.stdout.readline().strip() == "open"
+    finally:
+        doomed.send_signal(signal.SIGKILL)
+        doomed.wait()
+    time.sleep(1.2)  # its lease runs out
+    start = time.monotonic()
+    counts = asyncio.run(until_idle(settings_for(mongo_uri, db_name)))
+    assert time.monotonic() - start < 20
+    job = fresh.db[JOBS].find_one()
+    assert counts["done"] == 1 and job["state"] == "done" and job["attempts"] == 2
+    cluster = fresh.db[CLUSTERS].find_one()
+    assert "held" not in cluster and cluster["annotations"]  # aborted; appended once
+
+
 def test_graceful_shutdown_releases_unfinished_jobs(fresh, mongo_uri, db_name):
     server = LookupServer([(200, ANSWER, float("inf"))])
 

@@ -6,8 +6,11 @@ lookup and no cluster is looked up twice.
 Workers take jobs through `JobQueue`, on pymongo's AsyncMongoClient:
 
 - claim: one find_one_and_update of the job due first sets a lease: a fresh token, the worker's
-  name and `lease_until`. A running job's `due` is the end of its lease, so when its worker dies
-  (no more heartbeats) the job falls due again and the next claim takes it over;
+  name, `lease_until` and the session the job's writes run in. A running job's `due` is the
+  end of its lease, so when its worker dies (no more heartbeats) the job falls due again and
+  the next claim takes it over, first killing the dead worker's session: killed inside its
+  transaction, it left the transaction open on the server, holding the cluster, its object and
+  its scene (and the consolidator of that map) until the server reaped it, 90 s later;
 - heartbeat, complete, retry, fail, release: only with the current token, so a worker that lost
   its lease can never overwrite the one that took the job over;
 - a failure is retried after an exponential backoff (backoff x 2^(attempt-1), +-20 % jitter,
@@ -24,6 +27,7 @@ which NTP keeps within milliseconds of each other; the lease is seconds long.
 
 from __future__ import annotations
 
+import logging
 import random
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,11 +36,14 @@ from typing import Any, Literal
 
 from bson import ObjectId
 from pymongo import ReturnDocument, UpdateOne
+from pymongo.errors import OperationFailure
 
 from percept_memory.converters import name_of
 from percept_memory.memory.schema import JOBS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import ImageROI
+
+log = logging.getLogger(__name__)
 
 LOOKUP = "lookup"
 State = Literal["queued", "running", "done", "failed"]
@@ -89,6 +96,7 @@ class Job:
     lease: ObjectId
     attempts: int
     taken_over_from: str | None = None  # the worker whose lease had expired
+    session: Any = None  # the job's writes run in it (AsyncClientSession); ended by its worker
 
 
 class JobQueue:
@@ -101,28 +109,43 @@ class JobQueue:
         self.backoff_s = backoff_s
 
     async def claim(self, worker: str) -> Job | None:
-        """The job due first, leased to `worker`; None when nothing is due. A job whose lease
-        expired on its last allowed attempt is marked failed instead of run once more."""
+        """The job due first, leased to `worker`, with the session its writes are to run in;
+        None when nothing is due. A job whose lease expired on its last allowed attempt is
+        marked failed instead of run once more."""
         while True:
             at = utc_now()
             token = ObjectId()
+            session = self.jobs.database.client.start_session()
             before = await self.jobs.find_one_and_update(
                 {"due": {"$lte": at}},
                 {"$set": {"state": "running", "worker": worker, "lease": token,
                           "lease_until": at + self.lease, "due": at + self.lease,
-                          "updated": at},
+                          "updated": at, "session": session.session_id},
                  "$inc": {"attempts": 1}},
                 sort=[("due", 1)], return_document=ReturnDocument.BEFORE,
             )
             if before is None:
+                await session.end_session()
                 return None
             lost = before.get("worker") if before["state"] == "running" else None
-            job = Job(before["_id"], before["cluster_id"], token, before["attempts"] + 1, lost)
+            if lost and before.get("session"):
+                await self._kill(before["session"])
+            job = Job(before["_id"], before["cluster_id"], token, before["attempts"] + 1, lost,
+                      session)
             if job.attempts <= self.max_attempts:
                 return job
+            await session.end_session()
             await self._finish(job, "failed", error=(
                 f"gave up after {self.max_attempts} attempts: worker {lost} stopped "
                 "(its lease expired)" if lost else before.get("error")))
+
+    async def _kill(self, session_id: dict) -> None:
+        """Abort what the session of a job whose lease expired left open (without the right
+        to, the server's own reaping is waited out)."""
+        try:
+            await self.jobs.database.client.admin.command("killSessions", [session_id])
+        except OperationFailure as error:
+            log.warning("could not end an expired job's session (%s)", error)
 
     async def heartbeat(self, job: Job) -> bool:
         """Extend the lease; False when the job is no longer this worker's."""
@@ -184,7 +207,7 @@ def job_report(store: MemoryStore, state: State | None = None, limit: int = 20) 
 
 
 def job_summary(doc: dict) -> dict:
-    """A job document as JSON: ids as hex, times as ISO 8601, no lease token."""
+    """A job document as JSON: ids as hex, times as ISO 8601, no lease token or session."""
     def plain(value: Any) -> Any:
         if isinstance(value, ObjectId):
             return str(value)
@@ -195,7 +218,7 @@ def job_summary(doc: dict) -> dict:
         return value
 
     return {("id" if key == "_id" else key): plain(value)
-            for key, value in doc.items() if key != "lease"}
+            for key, value in doc.items() if key not in ("lease", "session")}
 
 
 def requeue_failed(store: MemoryStore) -> int:

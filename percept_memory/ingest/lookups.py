@@ -131,7 +131,7 @@ class Lookup:
                                           job_id=job.id)
         annotations = annotations_for(findings, provenance, roi, crop.shape)
         if annotations:
-            await self.store.add_annotations(cluster.id, annotations)
+            await self.store.add_annotations(cluster.id, annotations, session=job.session)
         return {"backend": name, "cached": provenance.cached,
                 "hash_distance": provenance.hash_distance, "latency_ms": provenance.latency_ms,
                 "phash": f"{phash:016x}", "findings": len(findings),

@@ -83,6 +83,12 @@ class Worker:
         return self.counts
 
     async def _execute(self, job: Job) -> None:
+        try:
+            await self._run(job)
+        finally:
+            await job.session.end_session()
+
+    async def _run(self, job: Job) -> None:
         if job.taken_over_from:
             log.info("job %s: taken over from %s", job.id, job.taken_over_from)
         work = asyncio.create_task(self.lookup.run(job))

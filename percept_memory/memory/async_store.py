@@ -140,18 +140,20 @@ class AsyncMemoryStore(StoreBase):
         return (await self.add_annotations(cluster_id, [annotation]))[0]
 
     async def add_annotations(
-        self, cluster_id: ObjectId, annotations: Sequence[Annotation]
+        self, cluster_id: ObjectId, annotations: Sequence[Annotation], session=None
     ) -> list[ObjectId]:
-        """See MemoryStore.add_annotations: one transaction, idempotent by annotation id."""
+        """See MemoryStore.add_annotations: one transaction, idempotent by annotation id; in
+        `session`, when given (an enrichment job's: jobs.py)."""
         annotation_ids = [annotation.ensure_id() for annotation in annotations]
         await self._rewrite_cluster(
-            cluster_id, lambda cluster: docs.appended(cluster, annotations))
+            cluster_id, lambda cluster: docs.appended(cluster, annotations), session)
         return annotation_ids
 
     async def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
         await self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
 
-    async def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange) -> None:
+    async def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange,
+                               session=None) -> None:
         async def work(session) -> set[str]:
             doc = await self.clusters.find_one({"_id": cluster_id}, session=session)
             if doc is None:
@@ -175,7 +177,7 @@ class AsyncMemoryStore(StoreBase):
                 await self.scenes.update_one({"_id": doc["scene_id"]}, summary, session=session)
             return written
 
-        await self._catalogue(await self._transaction(work))
+        await self._catalogue(await self._transaction(work, session))
 
     async def _rename(self, object_id, before, after, session) -> None:
         """Keep the names of the object an observation is believed to be in step with the
@@ -234,9 +236,12 @@ class AsyncMemoryStore(StoreBase):
             await self.clusters.insert_many(written.clusters, session=session)
         await self.outbox.insert_many(written.outbox, session=session)
 
-    async def _transaction(self, work):
-        async with self.client.start_session() as session:
+    async def _transaction(self, work, session=None):
+        """Run work(session) in a transaction, in a session of its own or the one given."""
+        if session is not None:
             return await session.with_transaction(work)
+        async with self.client.start_session() as own:
+            return await own.with_transaction(work)
 
     async def _catalogue(self, written: docs.Documents) -> None:
         for name in self._not_yet_catalogued(written.type_names):

@@ -285,6 +285,21 @@ def test_an_objects_place_is_the_mean_of_its_observations_since_it_last_moved(em
     assert doc["position"][0] == pytest.approx(0.95) and doc["place_count"] == 1
 
 
+def test_a_declared_position_noise_gives_the_place_estimate_its_variance(empty_store):
+    """A sensor that declares its noise (Location.position_sigma, 4 cm here): the object's
+    place is the mean of its observations, whose variance falls as 1/n; observations 8 cm
+    apart, beyond the learnt spread of a sensor good to 2 cm, are one object staying."""
+    seen = [_box("green", x) for x in (0.50, 0.58, 0.46, 0.54)]
+    for cluster in seen:
+        cluster.annotations[0].position_sigma = (0.04, 0.04, 0.0)
+    consolidate_one_by_one(empty_store, [_looks(0.6, c, t=i) for i, c in enumerate(seen)])
+    (doc,) = empty_store.db.objects.find({"map": "sides"})
+    assert [e["explanation"] for e in empty_store.db.events.find().sort("time", 1)] == [
+        "appear", "stay", "stay", "stay"]
+    assert doc["position"][0] == pytest.approx(0.52) and doc["place_count"] == 4
+    assert doc["position_variance"] == pytest.approx([0.0016 / 4, 0.0016 / 4, 0.0])
+
+
 def test_candidates_are_given_to_identity_with_when_they_were_last_seen(empty_store,
                                                                          monkeypatch):
     """Identity prefers, of two look-alikes, the one seen last (Parameters.superseded): it

@@ -122,6 +122,22 @@ def test_a_hidden_object_moved_into_view_is_a_move():
                                                    "n-tea": ("tea", MOVE)}
 
 
+def test_a_declared_position_noise_widens_the_same_place():
+    """A sensor good to 10 cm that says so (Location.position_sigma): an object's own
+    observation 12 cm from its place is at the same place, where the spread learnt for a
+    sensor good to 2 cm (the prior) calls it moved; at 1 m it is moved either way."""
+    noisy = (0.01, 0.01, 0.0)  # variance: 10 cm along x and y
+
+    def decide(x: float, variance) -> Explanation:
+        before = [Known("mug", replace(obs("old", 0.0, 0.0, cup()), position_variance=variance),
+                        True)]
+        now = [replace(obs("n", x, 0.05, cup()), position_variance=variance)]
+        return resolve(now, before, DEFAULTS)[0].explanation
+
+    assert (decide(0.11, None), decide(0.11, noisy)) == (MOVE, STAY)
+    assert (decide(1.0, None), decide(1.0, noisy)) == (MOVE, MOVE)
+
+
 def test_an_object_that_looks_nothing_like_it_was_not_moved_here():
     """A move needs the look: an object out of view that looks nothing like the new
     observation, with no other look known, is no likelier moved here than a magazine that is

@@ -44,6 +44,7 @@ from .identity import (
     Known,
     Observation,
     Parameters,
+    declared_spread,
     resolve,
 )
 from .known_objects import KnownObjects
@@ -375,7 +376,8 @@ def _known(doc: dict, in_view: bool, seen_as: dict) -> Known:
     other looks and when each was last seen."""
     others = [(seen_as[view], seen) for view, _, seen in _looks(doc)
               if view != doc["last_cluster"] and view in seen_as]
-    return Known(doc["_id"], _placed(seen_as[doc["last_cluster"]], doc.get("position")),
+    return Known(doc["_id"], _placed(seen_as[doc["last_cluster"]], doc.get("position"),
+                                     doc.get("position_variance")),
                  in_view, [o for o, _ in others], doc["last_seen"], [s for _, s in others])
 
 
@@ -389,7 +391,8 @@ def _after(merged: dict, object_id):
 def _observation(cluster: Cluster, arrived: int) -> Observation:
     """What identity compares: the cluster's place and the evidence it arrived with."""
     return Observation(cluster.id, cluster.position,
-                       [*cluster.annotations[:arrived], *cluster.hypotheses])
+                       [*cluster.annotations[:arrived], *cluster.hypotheses],
+                       cluster.position_variance)
 
 
 def _event(decision: Decision, object_id, scene: Scene, cluster: Cluster | None,
@@ -507,29 +510,37 @@ class Written:
             "$inc": {"observations": self.observations}}, upsert=True)
 
 
-def _placed(last: Observation, place) -> Observation:
-    """An object as last seen, at its estimated place."""
-    return last if place is None else last.at(tuple(place))
+def _placed(last: Observation, place, variance) -> Observation:
+    """An object as last seen, at its estimated place (with that estimate's variance)."""
+    return last if place is None else last.at(tuple(place),
+                                              None if variance is None else tuple(variance))
 
 
 def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params: Parameters,
-                    calibration: Calibration) -> tuple[list | None, int]:
+                    calibration: Calibration) -> tuple[list | None, int, list | None]:
     """Where an object is, from all its observations since it last moved (their mean: the
-    noise of one observation shrinks by the square root of their number), and how many. A
-    move or a new object starts afresh, and so does an observation farther from the mean
-    than one object's observations lie apart (3 standard deviations of the calibration's
-    same-place spread: a small move taken for a stay); MAX_PLACE_COUNT keeps a slow drift
-    followed."""
+    noise of one observation shrinks by the square root of their number), how many, and,
+    when the sensor declares its noise, the variance of that mean per axis. A move or a new
+    object starts afresh, and so does an observation farther from the mean than one object's
+    observations lie apart (3 standard deviations of the same-place spread, declared or
+    learnt: a small move taken for a stay); MAX_PLACE_COUNT keeps a slow drift followed."""
     if cluster.position is None:
-        return previous.get("position"), previous.get("place_count", 0)
+        return (previous.get("position"), previous.get("place_count", 0),
+                previous.get("position_variance"))
     count = previous.get("place_count") or 1
+    variance, before = cluster.position_variance, previous.get("position_variance")
+    both = None if variance is None or before is None else np.add(variance, before)
     if (decision.explanation in (Explanation.STAY, Explanation.NEWVIEW)
             and previous.get("position") is not None
             and calibration.place.near(cluster.position, previous["position"],
-                                       params.proximity_sigma)):
+                                       params.proximity_sigma, None if both is None else
+                                       declared_spread(both, params.proximity_sigma))):
         mean = np.add(np.multiply(previous["position"], count), cluster.position) / (count + 1)
-        return mean.tolist(), min(count + 1, MAX_PLACE_COUNT)
-    return list(cluster.position), 1
+        if both is not None:  # the variance of a mean of `count` observations and this one
+            both = (np.multiply(before, count * count) + variance) / (count + 1) ** 2
+        return (mean.tolist(), min(count + 1, MAX_PLACE_COUNT),
+                None if both is None else both.tolist())
+    return list(cluster.position), 1, None if variance is None else list(variance)
 
 
 def _object_fields(decision: Decision, scene: Scene, cluster: Cluster, previous: dict,
@@ -539,12 +550,12 @@ def _object_fields(decision: Decision, scene: Scene, cluster: Cluster, previous:
     support = 1 + sum(look[1] for look in looks if look[0] == decision.look)
     looks = [look for look in looks if look[0] != decision.look] + [
         (cluster.id, support, scene.timestamp)]
-    position, count = place
+    position, count, variance = place
     return {
         "map": scene.map, "state": "present", "last_seen": scene.timestamp,
         "last_scene": scene.id, "last_cluster": cluster.id, "robot": scene.robot,
         **_looks_fields(looks),
-        "position": position, "place_count": count,
+        "position": position, "place_count": count, "position_variance": variance,
         "x": position[0] if position else None,
         "y": position[1] if position else None, "region": cluster.region,
     }

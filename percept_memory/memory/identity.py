@@ -122,6 +122,9 @@ class Observation:
     key: Any  # the cluster id (or any label)
     position: Vec | None
     evidence: Sequence[Annotation | Hypothesis] = ()
+    # the variance of the position along each axis, when the sensor declares it
+    # (Location.position_sigma; of an object's estimated place, that of the mean)
+    position_variance: Vec | None = None
 
     @cached_property
     def by_type(self) -> dict[type, list]:
@@ -129,9 +132,9 @@ class Observation:
         compared with every scene that may show its object)."""
         return _by_type(self.evidence)
 
-    def at(self, position: Vec | None) -> Observation:
+    def at(self, position: Vec | None, variance: Vec | None = None) -> Observation:
         """The same look at another place (sharing its grouped evidence)."""
-        moved = replace(self, position=position)
+        moved = replace(self, position=position, position_variance=variance)
         moved.__dict__["by_type"] = self.by_type
         return moved
 
@@ -367,24 +370,58 @@ class Cue:
     same: Spread
     different: Histogram | Spread
 
-    def near(self, a: Vec, b: Vec, sigma: float) -> bool:
+    def near(self, a: Vec, b: Vec, sigma: float, same: Spread | None = None) -> bool:
         """Whether two places lie as near as one object's observations do (within 3 standard
-        deviations of the same-place spread)."""
+        deviations of the same-place spread: `same`, when the sensor declared it)."""
+        same = same or self.same
         u = surprise(proximities([a], [b], sigma)[0, 0])
-        return u <= self.same.mean + 3 * math.sqrt(self.same.variance)
+        return u <= same.mean + 3 * math.sqrt(same.variance)
 
-    def odds(self, similarity):
+    def odds(self, similarity, same: Spread | None = None):
         """The likelihood ratio of a similarity (or of an array of them, NaN or None where
-        there is nothing to compare: no evidence either way, odds 1). Nearer is never less
-        "the same" than farther: the ratio is made non-increasing in the surprise."""
+        there is nothing to compare: no evidence either way, odds 1), against `same` instead
+        of the learnt spread when given. Nearer is never less "the same" than farther: the
+        ratio is made non-increasing in the surprise."""
         given = np.asarray(similarity, dtype=float)
-        ratio = self.same.log_density(CENTRES) - self.different.log_density(CENTRES)
+        ratio = (same or self.same).log_density(CENTRES) - self.different.log_density(CENTRES)
         ratio = np.maximum.accumulate(ratio[::-1])[::-1]
         u = surprise(np.where(np.isnan(given), 1.0, given))
         log_odds = np.interp(np.log(u), np.log(CENTRES), ratio)
         odds = np.where(np.isnan(given), 1.0,
                         np.exp(np.clip(log_odds, -LOG_ODDS_LIMIT, LOG_ODDS_LIMIT)))
         return float(odds) if odds.ndim == 0 else odds
+
+
+def declared_spread(variance: Vec, sigma: float) -> Spread:
+    """The same-place spread of two observations of one object whose positions' noise is
+    declared: the surprise of their distance, d^2 / 4 sigma^2 (eq. 6.1), where d^2 sums each
+    axis' squared difference, of variance `variance` (both sides' summed). Its mean and
+    variance are exact for Gaussian noise; a Gamma with them is exact when the axes' noise is
+    alike (a chi-squared: shape 1 in the plane, 1.5 in space)."""
+    unit = 4 * sigma * sigma
+    mean = sum(variance) / unit
+    return Spread(1.0, max(mean, U_MIN), 2 * sum(v * v for v in variance) / (unit * unit))
+
+
+def _declared_place_odds(odds: np.ndarray, places: np.ndarray, new: Sequence[Observation],
+                         known: Sequence[Known], calibration: Calibration, sigma: float) -> None:
+    """Where both places' noise is declared, their place odds against the spread that noise
+    gives (declared_spread) instead of the learnt one. The learnt spread is learnt from the
+    decisions called "stay", and at high noise that loop keeps it narrow: an object's own
+    observations 10 cm apart were then taken for a move (bench/belief.py at sigma 0.1)."""
+    pairs: dict[tuple, list[tuple[int, int]]] = {}
+    for i, observation in enumerate(new):
+        if observation.position_variance is None:
+            continue
+        for j, candidate in enumerate(known):
+            if candidate.last.position_variance is not None:
+                total = tuple(np.add(observation.position_variance,
+                                     candidate.last.position_variance).round(12))
+                pairs.setdefault(total, []).append((i, j))
+    for total, cells in pairs.items():
+        rows, cols = map(list, zip(*cells, strict=True))
+        odds[rows, cols] = calibration.place.odds(places[rows, cols],
+                                                  declared_spread(total, sigma))
 
 
 # How alike different objects look is learnt from the pairs of clusters of each scene (sure
@@ -516,7 +553,9 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     places = proximities([o.position for o in new], [k.last.position for k in known],
                          params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
-    place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
+    place_odds = np.array(calibration.place.odds(places.reshape(len(new), len(known))),
+                          dtype=float).reshape(len(new), len(known))
+    _declared_place_odds(place_odds, places, new, known, calibration, params.proximity_sigma)
     other_odds, other_look, other_seen = _other_looks(new, known, calibration, params)
     seen = np.where(look_odds >= other_odds, np.array([k.last_seen for k in known]),
                     other_seen)

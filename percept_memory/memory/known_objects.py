@@ -22,8 +22,8 @@ from pymongo.collection import Collection
 from .places import Places
 
 # what deciding reads of an object: its candidate fields but its names
-FIELDS = ("state", "position", "place_count", "region", "last_cluster", "last_seen",
-          "first_seen", "views", "view_support", "view_seen")
+FIELDS = ("state", "position", "place_count", "position_variance", "region", "last_cluster",
+          "last_seen", "first_seen", "views", "view_support", "view_seen")
 
 
 def _recency(doc: dict) -> tuple:

@@ -28,6 +28,7 @@ from .base import Id, Identifiable, Model, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
 Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+Distance = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]  # metres, >= 0
 
 
 class Annotation(Identifiable):
@@ -73,10 +74,14 @@ def _unit_vector(feature: FeatureVector) -> np.ndarray | None:
 @stored_type("pm.annotation.Location")
 class Location(Annotation):
     """Where the object is: the region of interest it was found in (e.g. counter_top_sink),
-    its position in the map frame, and how it relates to the region ("on")."""
+    its position in the map frame, and how it relates to the region ("on"). `position_sigma`:
+    the standard deviation of the position's noise along x, y and z in metres, as the
+    perception knows it (localisation and segmentation); identity then knows how far apart
+    two observations of one object may lie, instead of only learning it from its decisions."""
 
     region: str | None = None
     position: Vec3 | None = None
+    position_sigma: tuple[Distance, Distance, Distance] | None = None
     frame: str = "map"
     relation: str | None = None
     pose: Pose | None = None  # pose relative to the region's frame, when known

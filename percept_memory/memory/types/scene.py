@@ -56,6 +56,13 @@ class Cluster(Identifiable):
         return location.position if location else None
 
     @property
+    def position_variance(self) -> Vec3 | None:
+        """The declared variance of the position along each axis (Location.position_sigma)."""
+        location = self.location()
+        sigma = location.position_sigma if location and location.position else None
+        return None if sigma is None else tuple(s * s for s in sigma)
+
+    @property
     def region(self) -> str | None:
         location = self.location()
         return location.region if location else None

@@ -18,9 +18,9 @@ Protocol (Blodow's thesis 6.3, our layout and seeds):
 - the robot looks at one random table from a jittered position (identity.World.view); the
   window seen is the scene's `view_region` (a pm.hypothesis.SpatialVolume box), so hidden vs
   disappeared is decidable. Every object in it is a cluster with two real annotation types
-  and nothing else: `pm.annotation.Location` (position with Gaussian noise sigma in x, y,
-  declared in its `position_sigma` as a sensor that knows its noise does, unless
-  --undeclared-noise; region = the table's name) and `pm.annotation.ColorHistogram` (8 x 8
+  and nothing else: `pm.annotation.Location` (position with Gaussian noise sigma in x, y;
+  with --declared-noise that noise is declared in its `position_sigma`, as a sensor that
+  knows its noise does; region = the table's name) and `pm.annotation.ColorHistogram` (8 x 8
   x 8 RGB bins: the expected histogram of pixels spread PIXEL_SPREAD around the side's
   colour plus Gaussian noise sigma per channel; with that spread its Bhattacharyya
   similarity is the thesis' g(distance), sigma 0.25, bins and clipping aside).
@@ -77,7 +77,7 @@ objects mixing two real items, real items split, and which PnP persistent object
 
 Usage: python bench/belief.py [--scenes 800] [--seeds 1 2 3 4 5] [--levels ...]
        [--tune-seeds 1001 1002 1003] [--tune] [--where-samples 2] [--kitchen-days 7]
-       [--no-real-data] [--undeclared-noise] [--quick]   (full size: ~15 minutes on 2 busy cores)
+       [--no-real-data] [--declared-noise] [--quick]   (full size: ~15 minutes on 2 busy cores)
 """
 
 from __future__ import annotations
@@ -363,7 +363,7 @@ class LongRun(Run):
     """identity.Run's bookkeeping and scoring on one LongWorld, scenes seen over HTTP."""
 
     def __init__(self, seed: int, noise: float, decider: OverHttp, where_samples: int,
-                 objects: int = OBJECTS, declared: bool = True) -> None:
+                 objects: int = OBJECTS, declared: bool = False) -> None:
         # not Run.__init__: that makes a fresh World per (actions, limit)
         self.world = LongWorld(np.random.default_rng([seed, 0]), max(LIMITS), objects)
         self.noise_rng = np.random.default_rng([seed, round(noise * 1e4)])
@@ -683,8 +683,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="a world of this many objects, for the time per scene with 100 "
                              "and more in memory (0: not run)")
     parser.add_argument("--crowded-scenes", type=int, default=400)
-    parser.add_argument("--undeclared-noise", action="store_true",
-                        help="positions without position_sigma: identity learns their spread")
+    parser.add_argument("--declared-noise", action="store_true",
+                        help="positions declare their noise (Location.position_sigma)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes, for CI")
     args = parser.parse_args(argv)
     if args.quick:
@@ -705,7 +705,7 @@ def main(argv: list[str] | None = None) -> int:
                 score, extra = Score(), Extra()
                 name = f"belief/seed{seed}/sigma{noise}"
                 LongRun(seed, noise, OverHttp(server, name), args.where_samples,
-                        declared=not args.undeclared_noise).run(
+                        declared=args.declared_noise).run(
                     args.scenes, score, extra, bar, task)
                 per_seed[str(seed)] = summary(noise, score, extra)
                 pooled.merge(score)
@@ -726,7 +726,7 @@ def main(argv: list[str] | None = None) -> int:
             task = bar.add_task(f"{args.crowded} objects", total=args.crowded_scenes)
             LongRun(seeds[0], min(args.levels), OverHttp(
                 server, f"belief/crowded{args.crowded}/seed{seeds[0]}"), 0, args.crowded,
-                declared=not args.undeclared_noise).run(
+                declared=args.declared_noise).run(
                 args.crowded_scenes, score, extra, bar, task)
             crowded = {"objects": args.crowded, "scenes": args.crowded_scenes, "seed": seeds[0],
                        "noise": min(args.levels), "headline": headline(summary(
@@ -747,7 +747,7 @@ def main(argv: list[str] | None = None) -> int:
                      "nudge_m": list(NUDGE), "view_jitter_m": VIEW_JITTER,
                      "appearance": f"pm.annotation.ColorHistogram RGB {BINS}^3, pixel spread "
                                    f"{PIXEL_SPREAD:.3f}", "position": "pm.annotation.Location",
-                     "position_sigma_declared": not args.undeclared_noise,
+                     "position_sigma_declared": args.declared_noise,
                      "path": "POST /api/scenes?wait=belief (one scene a request) to "
                              "`python -m percept_memory serve`; events; GET /api/where-is",
                      "where_is_samples_per_scene": args.where_samples},

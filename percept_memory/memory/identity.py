@@ -244,14 +244,16 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         return np.where(count > 0, np.exp(log_sum / np.maximum(count, 1)), np.nan)
 
 
+def _rows(vectors: Sequence[Vec | None]) -> np.ndarray:
+    """Vectors of 3 as the rows of an array, NaN where one is unknown."""
+    return np.array([v if v is not None else (np.nan,) * 3 for v in vectors],
+                    dtype=float).reshape(len(vectors), 3)
+
+
 def proximities(a: Sequence[Vec | None], b: Sequence[Vec | None], sigma: float) -> np.ndarray:
     """Eq. 6.1 of the distance of every pair of places, NaN where one is unknown."""
-    def stack(places):
-        return np.array([p if p is not None else (np.nan,) * 3 for p in places],
-                        dtype=float).reshape(len(places), 3)
-
     with np.errstate(over="ignore", invalid="ignore"):  # places 1e308 apart: proximity 0
-        distance = np.linalg.norm(stack(a)[:, None, :] - stack(b)[None, :, :], axis=-1)
+        distance = np.linalg.norm(_rows(a)[:, None, :] - _rows(b)[None, :, :], axis=-1)
         return np.exp(-((distance / (2 * sigma)) ** 2))
 
 
@@ -409,19 +411,17 @@ def _declared_place_odds(odds: np.ndarray, places: np.ndarray, new: Sequence[Obs
     gives (declared_spread) instead of the learnt one. The learnt spread is learnt from the
     decisions called "stay", and at high noise that loop keeps it narrow: an object's own
     observations 10 cm apart were then taken for a move (bench/belief.py at sigma 0.1)."""
-    pairs: dict[tuple, list[tuple[int, int]]] = {}
-    for i, observation in enumerate(new):
-        if observation.position_variance is None:
-            continue
-        for j, candidate in enumerate(known):
-            if candidate.last.position_variance is not None:
-                total = tuple(np.add(observation.position_variance,
-                                     candidate.last.position_variance).round(12))
-                pairs.setdefault(total, []).append((i, j))
-    for total, cells in pairs.items():
-        rows, cols = map(list, zip(*cells, strict=True))
-        odds[rows, cols] = calibration.place.odds(places[rows, cols],
-                                                  declared_spread(total, sigma))
+    total = (_rows([o.position_variance for o in new])[:, None, :]
+             + _rows([k.last.position_variance for k in known])[None, :, :])
+    declared = ~np.isnan(total).any(axis=2)
+    if not declared.any():
+        return
+    rows, cols = np.nonzero(declared)
+    spreads, which = np.unique(total[declared].round(12), axis=0, return_inverse=True)
+    for s, variance in enumerate(spreads):
+        at = which.ravel() == s
+        odds[rows[at], cols[at]] = calibration.place.odds(
+            places[rows[at], cols[at]], declared_spread(tuple(variance), sigma))
 
 
 # How alike different objects look is learnt from the pairs of clusters of each scene (sure

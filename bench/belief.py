@@ -54,6 +54,8 @@ each truth row; a nudge counts as a move whatever its size. Beyond it:
   takes another object's id, that object counts as "appear" when next seen, and a memory
   that knows it again is scored wrong; on tune seed 1001 at sigma 0.025, 103 of its 131
   "appear" observations were of an object and side observed before);
+- the moves of new clusters split by how far they went (under 0.5 m: nudges; a nudge within
+  the position noise is no more a move to any memory than a stay);
 - object ids per true object: object ids the memory made / real objects it observed, beside
   the ids the strict truth itself asks for (a new one per side first seen after a move while
   turned); and objects at the end per true object (ids found to be one object remembered
@@ -138,6 +140,7 @@ PIXEL_SPREAD = 0.25 / math.sqrt(2)  # Bhattacharyya of two such blobs = g(distan
 NUDGE = (0.1, 0.5)  # m: a small move on the same table
 NEAR = 0.1  # m: where-is position "right" for an object not moved since last seen
 BUCKET = 25  # objects in memory per timing bucket
+NUDGED, FAR = "nudged_under_0.5m", "moved_0.5m_or_more"
 TARGETS = {"recall_min": 95.0, "association": 95.0, "object_ids_per_true_object": 1.2,
            "where_is_right_table": 97.0, "where_is_within_0.1m_unmoved": 95.0,
            "p95_ms_at_100_objects": 50.0}
@@ -345,6 +348,8 @@ class Extra:
     object_ids: int = 0
     objects_at_end: int = 0  # the map's objects once done (twins found merged)
     true_objects: int = 0
+    # new clusters whose truth is a move, by how far it went: [called a move, all]
+    moves: dict[str, list[int]] = field(default_factory=lambda: {NUDGED: [0, 0], FAR: [0, 0]})
 
     def merge(self, other: Extra) -> None:
         for name in ("strict", "never_observed", "right_table", "right_table_unmoved",
@@ -352,6 +357,9 @@ class Extra:
             mine, theirs = getattr(self, name), getattr(other, name)
             mine[0] += theirs[0]
             mine[1] += theirs[1]
+        for name, (called, total) in other.moves.items():
+            self.moves[name][0] += called
+            self.moves[name][1] += total
         self.errors_m += other.errors_m
         self.timings += other.timings
         self.object_ids += other.object_ids
@@ -380,6 +388,7 @@ class LongRun(Run):
         self.seen_as: dict[tuple[int, int], Any] = {}
         self.ids: set[Any] = set()  # object ids the memory has made
         self.seen_now: list[int] = []  # real objects observed in this scene (by observe())
+        self.moves = Extra().moves
 
     def observe(self, o: int) -> Observation:
         rgb = self.world.colour[o] + self.noise_rng.normal(0, self.noise, 3)
@@ -407,6 +416,20 @@ class LongRun(Run):
         extra.objects_at_end = self.decider.server.db["objects"].count_documents(
             {"map": self.decider.map})
         extra.true_objects = len(self.last_id)
+        extra.moves = self.moves
+
+    def score(self, score: Score, decisions, known, expected, elapsed: float) -> None:
+        """identity.Run's, and the moves split by how far they went: a nudge of 0.1 m lies
+        within noise of sigma 0.1, where no memory tells it from a stay."""
+        remembered = {**self.gone, **self.belief}
+        for i, (obj, explanation) in expected.items():
+            if explanation == "move" and obj in remembered:
+                o = decisions[i].key[0]
+                far = np.linalg.norm(remembered[obj].true_place - self.world.place[o]) >= NUDGE[1]
+                row = self.moves[FAR if far else NUDGED]
+                row[0] += decisions[i].explanation is Explanation.MOVE
+                row[1] += 1
+        super().score(score, decisions, known, expected, elapsed)
 
     def step(self, score: Score, extra: Extra) -> None:
         self.world.act(self.actions)
@@ -551,6 +574,7 @@ def summary(noise: float, score: Score, extra: Extra) -> dict[str, Any]:
                                           "p95": p(extra.errors_m, 95)},
                      "unmoved_placed": extra.near_unmoved[1],  # answered with a position
                      "unmoved_within_0.1m_percent": share(extra.near_unmoved)},
+        "move_recall_new_clusters": {name: share(counts) for name, counts in extra.moves.items()},
         "time_per_scene_http": timing(extra.timings),
         "figure_6_5_association_by_problem_size": {
             str(size): share(counts) for size, counts in sorted(score.by_size.items())},

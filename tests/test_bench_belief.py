@@ -85,3 +85,23 @@ def test_where_is_is_scored_apart_for_the_objects_not_moved_since_last_observed(
     run.where(extra)
     assert (extra.right_table, extra.right_table_unmoved) == ([1, 2], [1, 1])
     assert extra.near_unmoved == [1, 1]
+
+
+def test_the_moves_are_scored_apart_by_how_far_they_went(run):
+    """A nudge within the noise is no move to any memory: the moves of new clusters are
+    counted apart under 0.5 m (nudges) and from 0.5 m on, each with whether it was called a
+    move."""
+    import belief
+    from identity import Belief, Score
+
+    from percept_memory.memory.identity import Decision, Explanation, Observation
+
+    seen = Observation((0, 1), (0.2, 0.1, 0.0))
+    run.belief = {"K": Belief(seen, 0), "L": Belief(seen, 1)}
+    run.belief["K"].true_place, run.belief["L"].true_place = np.array([0.0, 0.1]), np.array(
+        [2.0, 0.1])
+    run.world.place = {0: np.array([0.2, 0.1]), 1: np.array([3.2, 0.1])}
+    decisions = [Decision((0, 2), "K", Explanation.STAY, 0.9),
+                 Decision((1, 3), "L", Explanation.MOVE, 0.9)]
+    run.score(Score(), decisions, [], {0: ("K", "move"), 1: ("L", "move")}, 0.0)
+    assert run.moves == {belief.NUDGED: [0, 1], belief.FAR: [1, 1]}

@@ -21,6 +21,7 @@ from percept_memory.memory.types import (
     Shape,
     SpatialVolume,
 )
+from percept_memory.queries.engine import QueryEngine
 
 from .conftest import ingest_consolidated
 from .test_catalogue_store import stored_catalogue
@@ -298,6 +299,8 @@ def test_a_declared_position_noise_gives_the_place_estimate_its_variance(empty_s
         "appear", "stay", "stay", "stay"]
     assert doc["position"][0] == pytest.approx(0.52) and doc["place_count"] == 4
     assert doc["position_variance"] == pytest.approx([0.0016 / 4, 0.0016 / 4, 0.0])
+    (belief,) = QueryEngine(empty_store).where_is(str(doc["_id"]))
+    assert belief.position_sigma == pytest.approx((0.02, 0.02, 0.0))
 
 
 def test_candidates_are_given_to_identity_with_when_they_were_last_seen(empty_store,

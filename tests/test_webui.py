@@ -333,6 +333,22 @@ def map_at_a_past_time(page: Page, url: str, store, week) -> None:
     shot(page, "8-map")
 
 
+def test_an_object_page_gives_its_places_declared_uncertainty(client, store):
+    """An object whose observations declared their position noise: the page gives its
+    estimated place with the standard deviation along each axis."""
+    known = store.db.objects.find_one({"position": {"$ne": None}})
+    twin = {**known, "_id": ObjectId(), "position_variance": [0.0004, 0.0009, 0.0001],
+            "place_count": 3}
+    store.db.objects.insert_one(twin)
+    try:
+        body = client.get(f"/objects/{twin['_id']}").text
+        assert "&plusmn; (0.02, 0.03, 0.01)" in body
+        assert "the mean of 3 observations of declared noise" in body
+        assert "&plusmn;" not in client.get(f"/objects/{known['_id']}").text
+    finally:
+        store.db.objects.delete_one({"_id": twin["_id"]})
+
+
 def test_an_object_page_draws_its_track_and_its_timeline(client, store):
     """A moved object: its positions on the floor plan joined in time order, and one bar per
     event on the timeline, left to right, as tall as the event's probability."""

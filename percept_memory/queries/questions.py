@@ -15,6 +15,7 @@ from bson import ObjectId
 from bson.min_key import MinKey
 
 from percept_memory.converters import unescape_key
+from percept_memory.memory.consolidation import position_sigma
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, OBJECTS
 from percept_memory.memory.search_keys import words
@@ -164,7 +165,8 @@ def stays(events: list[dict]) -> list[Stay]:
 def _belief(o: dict, match: float, confidence: float | None = None,
             evidence: list | None = None) -> Belief:
     stored = {key: o[key] for key in Belief.model_fields if o.get(key) is not None}
-    return Belief(**{**stored, "object_id": o["_id"], "confidence": confidence,
+    return Belief(**{**stored, "object_id": o["_id"], "position_sigma": position_sigma(o),
+                     "confidence": confidence,
                      "evidence": evidence or [], "match": round(match, 3)})
 
 

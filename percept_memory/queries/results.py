@@ -62,6 +62,8 @@ class Belief(BaseModel):
     state: State
     region: str | None = None
     position: Position | None = None
+    # its standard deviation along x, y, z, when the observations declared their noise
+    position_sigma: Position | None = None
     first_seen: Nanoseconds | None = None
     last_seen: Nanoseconds | None = None
     last_cluster: Id | None = None

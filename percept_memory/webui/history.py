@@ -15,6 +15,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
 from pymongo import DESCENDING
 
+from percept_memory.memory.consolidation import position_sigma
 from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 
@@ -72,7 +73,7 @@ def routes(store: MemoryStore) -> APIRouter:
         return page(request, "object.html", {
             "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
             "view": view, "regions": regions, "track": marks, "timeline": timeline(history),
-            "merge_candidates": candidates,
+            "merge_candidates": candidates, "position_sigma": position_sigma(believed),
         }, policy=SCRIPT_CSP)  # its correction form's script (curation.py)
 
     return router

@@ -27,7 +27,6 @@ such a correction made after its scene was consolidated asks for the map to be r
 
 from __future__ import annotations
 
-import math
 from collections import Counter, OrderedDict
 from collections.abc import Sequence
 
@@ -542,13 +541,6 @@ def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params
         return (mean.tolist(), min(count + 1, MAX_PLACE_COUNT),
                 None if both is None else both.tolist())
     return list(cluster.position), 1, None if variance is None else list(variance)
-
-
-def position_sigma(believed: dict) -> list[float] | None:
-    """The standard deviation of an object's estimated place along x, y, z, when its
-    observations declared their noise (estimated_place keeps its variance)."""
-    variance = believed.get("position_variance")
-    return None if variance is None else [math.sqrt(v) for v in variance]
 
 
 def _object_fields(decision: Decision, scene: Scene, cluster: Cluster, previous: dict,

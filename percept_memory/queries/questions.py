@@ -15,7 +15,6 @@ from bson import ObjectId
 from bson.min_key import MinKey
 
 from percept_memory.converters import unescape_key
-from percept_memory.memory.consolidation import position_sigma
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, OBJECTS
 from percept_memory.memory.search_keys import words
@@ -23,7 +22,7 @@ from percept_memory.memory.search_keys import words
 from .compile import time_window
 from .model import About, AtTime, Between, History, Place
 from .ops import Aggregate, Find, Plan, QueryError
-from .results import Belief, Changes, Contents, Moved, ObjectAt, Sighting, Stay
+from .results import Belief, Changes, Contents, Moved, ObjectAt, Sighting, Stay, position_sigma
 from .results import History as HistoryAnswer
 from .space import Coordinates, inside
 from .text import all_terms, expand, word_score

@@ -3,6 +3,7 @@ and the CLI give the same shapes. Times are int64 nanoseconds since the epoch, U
 
 from __future__ import annotations
 
+import math
 from typing import Annotated, Literal
 
 from pydantic import BaseModel
@@ -50,6 +51,13 @@ class ClusterPage(BaseModel):
     items: list[ClusterHit]
     next: str | None = None  # the cursor of the next page; None on the last
     total: int | None = None  # with count=true
+
+
+def position_sigma(believed: dict) -> list[float] | None:
+    """The standard deviation of a stored object's estimated place along x, y, z, when its
+    observations declared their noise (consolidation.estimated_place keeps its variance)."""
+    variance = believed.get("position_variance")
+    return None if variance is None else [math.sqrt(v) for v in variance]
 
 
 class Belief(BaseModel):

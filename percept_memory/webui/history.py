@@ -15,9 +15,9 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
 from pymongo import DESCENDING
 
-from percept_memory.memory.consolidation import position_sigma
 from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
+from percept_memory.queries.results import position_sigma
 
 from . import curation
 from .belief_map import Projection, floor_plan

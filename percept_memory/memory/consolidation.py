@@ -529,17 +529,20 @@ def estimated_place(decision: Decision, cluster: Cluster, previous: dict, params
                 previous.get("position_variance"))
     count = previous.get("place_count") or 1
     variance, before = cluster.position_variance, previous.get("position_variance")
-    both = None if variance is None or before is None else np.add(variance, before)
+    declared = variance is not None and before is not None
     if (decision.explanation in (Explanation.STAY, Explanation.NEWVIEW)
             and previous.get("position") is not None
             and calibration.place.near(cluster.position, previous["position"],
-                                       params.proximity_sigma, None if both is None else
-                                       declared_spread(both, params.proximity_sigma))):
+                                       params.proximity_sigma, declared_spread(
+                                           np.add(variance, before), params.proximity_sigma)
+                                       if declared else None)):
         mean = np.add(np.multiply(previous["position"], count), cluster.position) / (count + 1)
-        if both is not None:  # the variance of a mean of `count` observations and this one
-            both = (np.multiply(before, count * count) + variance) / (count + 1) ** 2
-        return (mean.tolist(), min(count + 1, MAX_PLACE_COUNT),
-                None if both is None else both.tolist())
+        kept = min(count + 1, MAX_PLACE_COUNT)
+        if not declared:
+            return mean.tolist(), kept, None
+        # the variance of a mean of `count` observations and this one
+        spread = (np.multiply(before, count * count) + variance) / (count + 1) ** 2
+        return mean.tolist(), kept, spread.tolist()
     return list(cluster.position), 1, None if variance is None else list(variance)
 
 

@@ -553,8 +553,7 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
     places = proximities([o.position for o in new], [k.last.position for k in known],
                          params.proximity_sigma)
     look_odds = calibration.look.odds(looked.reshape(len(new), len(known)))
-    place_odds = np.array(calibration.place.odds(places.reshape(len(new), len(known))),
-                          dtype=float).reshape(len(new), len(known))
+    place_odds = calibration.place.odds(places.reshape(len(new), len(known)))
     _declared_place_odds(place_odds, places, new, known, calibration, params.proximity_sigma)
     other_odds, other_look, other_seen = _other_looks(new, known, calibration, params)
     seen = np.where(look_odds >= other_odds, np.array([k.last_seen for k in known]),

@@ -196,37 +196,37 @@ def stage_cost(entries: int, measured: int, seed: int) -> dict:
     `measured` scenes of 5 known objects and 5 new ones: the catalogue stage's time per
     cluster (wall clock, and the stage's own CPU time, which other work on the machine does
     not change), and the whole pipeline's per scene, at that size."""
+    from pipeline import timing_catalogue  # bench/pipeline.py
     from scratch import scratch_store
 
     from percept_memory.ingest.service import IngestService
-    from percept_memory.memory.catalogue.stage import CatalogueStage
     from percept_memory.queries.catalogue import entries as catalogue_entries
 
     rng = np.random.default_rng(seed)
     with scratch_store() as store:
         service = IngestService(store)
-        stage = next(s for s in service.pipeline.stages if isinstance(s, CatalogueStage))
+        identity = service.pipeline.stages[0]  # the catalogue is learnt in identity's stage
         timed: list[tuple[int, float, float]] = []  # scenes, seconds, this thread's CPU seconds
-        apply = stage.apply
+        scene_time = [0.0, 0.0]
 
-        def timed_apply(scene_ids, map_name, session):
-            start, cpu = time.perf_counter(), time.thread_time()
-            apply(scene_ids, map_name, session)
-            timed.append((len(scene_ids), time.perf_counter() - start, time.thread_time() - cpu))
+        def spent(wall, cpu):
+            scene_time[0] += wall
+            scene_time[1] += cpu
 
-        stage.apply = timed_apply
+        timing_catalogue(identity, spent)
         known = entries // 10
         for first in range(0, known, 50):
             service.ingest_batch([home_scene(rng, i, list(range(10 * i, 10 * i + 10)))
                                   for i in range(first, min(first + 50, known))])
             service.pipeline.drain()
-        size = len(stage.learner("home").members)
-        timed.clear()
+        size = len(identity.catalogue.learner("home").members)
         start = time.perf_counter()
         for i in range(known, known + measured):
             old = [int(x) for x in rng.choice(10 * known, 5, replace=False)]
             service.ingest_batch([home_scene(rng, i, old + list(range(10 * i, 10 * i + 5)))])
+            scene_time[:] = [0.0, 0.0]
             service.pipeline.drain()
+            timed.append((1, *scene_time))
         elapsed = time.perf_counter() - start
         per_cluster = sorted(1000 * t / (10 * n) for n, t, _ in timed)
         cpu_per_cluster = sorted(1000 * c / (10 * n) for n, _, c in timed)

@@ -62,7 +62,8 @@ def throughput(scenes: list, progress: Progress) -> dict:
 
 def timed_stages(pipeline) -> dict[str, float]:
     """The CPU seconds (of the consolidating thread) each stage of the pipeline spends, filled
-    in as it runs."""
+    in as it runs; the catalogue, learnt inside identity's stage scene by scene, apart (and
+    not in identity's)."""
     spent = {stage.name: 0.0 for stage in pipeline.stages}
     for stage in pipeline.stages:
         def timed(*args, apply=stage.apply, name=stage.name, **kwargs):
@@ -72,7 +73,33 @@ def timed_stages(pipeline) -> dict[str, float]:
             finally:
                 spent[name] += time.thread_time() - start
         stage.apply = timed
+        if getattr(stage, "catalogue", None):
+            def learnt(wall, cpu, name=stage.name):
+                spent["catalogue"] = spent.get("catalogue", 0.0) + cpu
+                spent[name] -= cpu
+            timing_catalogue(stage, learnt)
     return spent
+
+
+def timing_catalogue(identity, spent) -> None:
+    """Time the catalogue's learning inside identity's stage (its batch's start, each scene's
+    learning, its writes): spent(wall seconds, this thread's CPU seconds) after each."""
+    def timed(call):
+        def timed_call(*args, **kwargs):
+            start, cpu = time.perf_counter(), time.thread_time()
+            try:
+                return call(*args, **kwargs)
+            finally:
+                spent(time.perf_counter() - start, time.thread_time() - cpu)
+        return timed_call
+
+    begin = timed(identity.catalogue.begin)
+
+    def timed_begin(*args, **kwargs):
+        batch = begin(*args, **kwargs)
+        batch.observe, batch.finish = timed(batch.observe), timed(batch.finish)
+        return batch
+    identity.catalogue.begin = timed_begin
 
 
 def lag(scenes: int, rate: float, seed: int, progress: Progress) -> dict:

@@ -14,7 +14,8 @@ from .test_pipeline import Failing
 
 
 class FailingOnce(Failing):
-    """A stage after the catalogue that fails the first time it sees one of these scenes."""
+    """A stage after identity's (and its catalogue's) that fails the first time it sees one
+    of these scenes."""
 
     name = "failing_once"
 
@@ -30,8 +31,8 @@ def test_aborted_batches_leave_no_trace_in_the_catalogue(store):
     ids = IngestService(store).ingest_batch(scenes)
     identity = Consolidation(store)
     failing = FailingOnce({i.scene_id for i in ids[5::4]})
-    pipeline = Pipeline(store, [identity, CatalogueStage(store, identity=identity), failing],
-                        backoff_s=0.01, batch=4)
+    identity.catalogue = CatalogueStage(store, identity=identity)
+    pipeline = Pipeline(store, [identity, failing], backoff_s=0.01, batch=4)
     pipeline.drain(timeout=120)
     assert not pipeline.pending()
     live = stored_catalogue(store)

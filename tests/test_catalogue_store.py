@@ -95,6 +95,47 @@ def test_the_entries_are_the_connected_components_of_the_similarity_graph(store,
         Counter(entry_of.values()))
 
 
+def kinds_of_objects(store, truth: dict) -> dict:
+    """Belief object -> the kinds of item its observations show (cup, plate, ...)."""
+    kinds: dict = {}
+    for doc in store.clusters.find({"object_id": {"$ne": None}}, {"object_id": 1}):
+        kinds.setdefault(doc["object_id"], set()).add(truth[doc["_id"]].split("#")[0])
+    return kinds
+
+
+def test_what_the_catalogue_learns_as_one_object_the_belief_holds_as_one(store, week,
+                                                                          mongo_uri):
+    """An item that came back after a while elsewhere showing a side identity had not linked
+    to it is a new object to identity alone; the catalogue learns its two tracks as one entry,
+    and identity then merges them (consolidation.py `_recalled`), history and all: fewer
+    objects than identity alone keeps, none of two kinds of item, every observation still an
+    event of its object."""
+    from pymongo import MongoClient
+
+    from percept_memory.memory.consolidation import Consolidation
+    from percept_memory.memory.pipeline import Pipeline
+    from percept_memory.memory.settings import Settings
+    from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+
+    scenes, truth = week
+    with MongoClient(mongo_uri, **CLIENT_OPTIONS) as client:
+        alone = MemoryStore(client, f"{store.db.name}_alone",
+                            gridfs_threshold=Settings().gridfs_threshold)
+        try:
+            alone.prepare()
+            alone.put_scenes(scenes.scenes)
+            Pipeline(alone, [Consolidation(alone)]).drain(timeout=600)
+            without = alone.db["objects"].count_documents({})
+        finally:
+            client.drop_database(alone.db.name)
+    kinds = kinds_of_objects(store, truth)
+    assert len(kinds) == store.db["objects"].count_documents({})
+    assert len(kinds) <= without - 2
+    assert not [k for k in kinds.values() if len(k) > 1]
+    observed = store.clusters.count_documents({"object_id": {"$ne": None}})
+    assert store.db["events"].count_documents({"cluster_id": {"$ne": None}}) == observed
+
+
 def test_seen_before_an_unknown_cluster_is_not_found(store):
     from bson import ObjectId
 

@@ -40,6 +40,9 @@ from percept_memory.ingest.workers import run_worker
 from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.schema import (
     CALIBRATION,
+    CATALOGUE,
+    CATALOGUE_HISTORY,
+    CATALOGUE_TRACKS,
     CLUSTERS,
     EVENTS,
     JOBS,
@@ -76,7 +79,7 @@ DERIVED = {"text": Text, "logo": Logo, "product": Product, "barcode": Barcode}
 def fresh(store):
     """The module's store with no scenes, jobs or cached lookups left by other tests."""
     for name in (SCENES, CLUSTERS, JOBS, LOOKUP_CACHE, OUTBOX, MAPS, OBJECTS, EVENTS,
-                 CALIBRATION):
+                 CALIBRATION, CATALOGUE, CATALOGUE_TRACKS, CATALOGUE_HISTORY):
         store.db[name].delete_many({})
     return store
 

@@ -25,7 +25,16 @@ from percept_memory.memory.pipeline import (
     retry_held,
     status,
 )
-from percept_memory.memory.schema import CALIBRATION, EVENTS, MAPS, OBJECTS, OUTBOX
+from percept_memory.memory.schema import (
+    CALIBRATION,
+    CATALOGUE,
+    CATALOGUE_HISTORY,
+    CATALOGUE_TRACKS,
+    EVENTS,
+    MAPS,
+    OBJECTS,
+    OUTBOX,
+)
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import (
     Cluster,
@@ -40,7 +49,9 @@ from percept_memory.queries.engine import QueryEngine
 
 from .conftest import LOCAL, ingest_consolidated
 
-BELIEF = (OBJECTS, EVENTS, OUTBOX, MAPS, CALIBRATION)
+# (the catalogue too: identity merges the objects it learns as one)
+BELIEF = (OBJECTS, EVENTS, OUTBOX, MAPS, CALIBRATION, CATALOGUE, CATALOGUE_TRACKS,
+          CATALOGUE_HISTORY)
 
 
 @pytest.fixture

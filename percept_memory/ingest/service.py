@@ -256,12 +256,13 @@ def _documents(parts: Iterable[Part], results: list[SceneIds]) -> Iterator[Docum
 
 
 def memory_pipeline(store: MemoryStore, settings: Settings | None = None) -> Pipeline:
-    """The memory pipeline with its stages: identity consolidation, the long-term catalogue
-    (which needs the objects identity linked), then lookup jobs."""
+    """The memory pipeline with its stages: identity consolidation, with the long-term
+    catalogue learnt scene by scene as identity decides (and recalling for it what it took for
+    new), then lookup jobs."""
     lease_s = (settings or Settings()).map_lease_s
     identity = Consolidation(store)
-    return Pipeline(store, [identity, CatalogueStage(store, identity=identity),
-                            LookupEnqueuer(store)], lease_s=lease_s)
+    identity.catalogue = CatalogueStage(store, identity=identity)  # learnt as identity decides
+    return Pipeline(store, [identity, LookupEnqueuer(store)], lease_s=lease_s)
 
 
 def in_map(scenes: Iterable[Scene], name: str) -> Iterator[Scene]:

@@ -1,6 +1,8 @@
-"""The catalogue as a stage of the memory pipeline: after identity has linked a scene's
-clusters to objects, each observation's views go to its object's current partial model, and a
-model that gained views is learnt again (learning.py). A belief stage: rebuilt with its map.
+"""The catalogue as a part of the memory pipeline's identity stage: after identity has linked a
+scene's clusters to objects, each observation's views go to its object's current partial model,
+and a model that gained views is learnt again (learning.py), before the next scene is decided:
+identity merges the objects the catalogue learns as one (consolidation.py). Rebuilt with its
+map, as the belief is.
 
 A partial model is an object track's graph of views over at most OBSERVATIONS_PER_MODEL
 observations (Duceux 3.4.5: a tracker's sequence of views); then the track starts a new one, so
@@ -60,10 +62,8 @@ def home_parameters() -> Parameters:
 
 
 class CatalogueStage:
-    """The pipeline stage keeping each map's catalogue current."""
-
-    name = "catalogue"
-    belief = True
+    """Each map's catalogue, kept current as a part of identity's stage of the pipeline
+    (consolidation.py: learnt scene by scene, in the same transaction) and read by queries."""
 
     def __init__(self, store: MemoryStore, params: Parameters | None = None,
                  identity: Consolidation | None = None):
@@ -75,55 +75,32 @@ class CatalogueStage:
         self.tracks = store.db[CATALOGUE_TRACKS]
         self.history = store.db[CATALOGUE_HISTORY]
         self.maps = store.db[MAPS]
-        self._learners: dict[str, tuple[ObjectId | None, Learner]] = {}
+        # map -> (the version its learner is of, the learner, each model's object)
+        self._learners: dict[str, tuple[ObjectId | None, Learner, dict]] = {}
 
     def learner(self, map_name: str, session=None) -> Learner:
         """The map's catalogue as stored now."""
+        return self._learner(map_name, session)[1]
+
+    def _learner(self, map_name: str, session) -> tuple[ObjectId | None, Learner, dict]:
         stored = self.maps.find_one({"_id": map_name}, {VERSION: 1}, session=session) or {}
         version = stored.get(VERSION)
         kept = self._learners.get(map_name)
         if kept is None or version is None or kept[0] != version:
+            docs = list(self.models.find({"map": map_name}, session=session))
             rows = ((doc["_id"].binary, GraphOfViews.of(doc["elements"]),
                      doc["length"], {other.binary: w for other, w in doc["edges"]})
-                    for doc in self.models.find({"map": map_name}, session=session))
-            self._learners[map_name] = (version, Learner.restored(self.params, rows))
-        return self._learners[map_name][1]
+                    for doc in docs)
+            self._learners[map_name] = (version, Learner.restored(self.params, rows),
+                                        {doc["_id"].binary: doc["object_id"] for doc in docs})
+        return self._learners[map_name]
 
-    def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
-        learner = self.learner(map_name, session)
+    def begin(self, map_name: str, session) -> Batch:
+        """A batch of scenes of the map to learn, one `observe` per scene in time order, then
+        `finish` (the writes, in `session`'s transaction)."""
+        _, learner, objects = self._learner(map_name, session)
         self._learners.pop(map_name)  # until this transaction's writes are known to be in
-        scenes = {doc["_id"]: doc for doc in self.store.scenes.find(
-            {"_id": {"$in": list(scene_ids)}}, {"clusters": 1, "timestamp": 1},
-            session=session)}
-        wanted = [c for doc in scenes.values() for c in doc["clusters"]]
-        objects = self._objects(wanted, session)
-        evidence = self.identity.observations(list(objects), session)
-        tracks = {doc["_id"]: doc for doc in self.tracks.find(
-            {"_id": {"$in": list(set(objects.values()))}}, session=session)}
-        touched, learnt, changes = set(), {}, []  # learnt: model -> its object
-        for scene_id in scene_ids:
-            scene = scenes.get(scene_id)
-            for cluster_id in scene["clusters"] if scene else ():
-                views = (cluster_id in objects and cluster_id in evidence
-                         and observation_views(evidence[cluster_id].evidence))
-                if views:
-                    track = tracks.setdefault(objects[cluster_id], {
-                        "_id": objects[cluster_id], "map": map_name, "seen": 0})
-                    if self._observe(learner, track, cluster_id, views, scene["timestamp"]):
-                        learnt[track["model"].binary] = track["_id"]
-                    touched.add(track["_id"])
-                    changes += [{"map": map_name, "time": scene["timestamp"],
-                                 "cluster_id": cluster_id, "kind": change.kind,
-                                 "before": [ObjectId(e) for e in change.before],
-                                 "after": [ObjectId(e) for e in change.after]}
-                                for change in learner.history]
-                    learner.history.clear()
-        if touched:
-            self.tracks.bulk_write([ReplaceOne({"_id": t}, tracks[t], upsert=True)
-                                    for t in sorted(touched)], session=session)
-        if changes:
-            self.history.insert_many(changes, session=session)
-        self._write(learner, map_name, learnt, session)
+        return Batch(self, map_name, learner, objects, session)
 
     def _objects(self, cluster_ids: list, session) -> dict:
         """The object of each cluster as identity made it by the end of the cluster's scene,
@@ -155,7 +132,8 @@ class CatalogueStage:
                       track["observations"])
         return True
 
-    def _write(self, learner: Learner, map_name: str, learnt: dict, session) -> None:
+    def _write(self, learner: Learner, objects: dict, map_name: str, learnt: dict,
+               session) -> None:
         """The models that changed, and a new version of the map's catalogue. `learnt`: the
         models learnt (again) in this batch, with their objects: written whole; the others
         only changed their edges or entry (a model's elements never change under its id)."""
@@ -181,7 +159,7 @@ class CatalogueStage:
             self.models.bulk_write(writes, session=session)
         version = ObjectId()
         self.maps.update_one({"_id": map_name}, {"$set": {VERSION: version}}, session=session)
-        self._learners[map_name] = (version, learner)
+        self._learners[map_name] = (version, learner, objects)
 
     def reset(self, map_name: str) -> None:
         """Forget the map's catalogue (it is learnt again from the map's scenes)."""
@@ -190,3 +168,67 @@ class CatalogueStage:
         self.history.delete_many({"map": map_name})
         self.maps.update_one({"_id": map_name}, {"$unset": {VERSION: ""}})
         self._learners.pop(map_name, None)
+
+
+class Batch:
+    """A batch of a map's scenes being learnt (CatalogueStage.begin), scene by scene, and
+    which objects the catalogue holds for one (`entry_mates`): as learnt from the scenes so
+    far, whatever the batching."""
+
+    def __init__(self, stage: CatalogueStage, map_name: str, learner: Learner, objects: dict,
+                 session):
+        self.stage, self.map_name, self.learner, self.session = stage, map_name, learner, session
+        self.objects = objects  # model (its id's bytes) -> the object whose track made it
+        self.tracks: dict = {}  # object id -> its track, as read or grown in this batch
+        self.touched, self.learnt, self.changes = set(), {}, []
+
+    def observe(self, cluster_ids: Sequence[ObjectId], time: int) -> list[ObjectId]:
+        """Learn one scene's clusters (those identity linked to an object), in order; the
+        objects whose model was learnt (again)."""
+        objects = self.stage._objects(list(cluster_ids), self.session)
+        evidence = self.stage.identity.observations(list(objects), self.session)
+        learnt: list[ObjectId] = []
+        unread = {objects[c] for c in objects} - self.tracks.keys()
+        if unread:
+            self.tracks.update((doc["_id"], doc) for doc in self.stage.tracks.find(
+                {"_id": {"$in": list(unread)}}, session=self.session))
+        for cluster_id in cluster_ids:
+            views = (cluster_id in objects and cluster_id in evidence
+                     and observation_views(evidence[cluster_id].evidence))
+            if not views:
+                continue
+            track = self.tracks.setdefault(objects[cluster_id], {
+                "_id": objects[cluster_id], "map": self.map_name, "seen": 0})
+            if self.stage._observe(self.learner, track, cluster_id, views, time):
+                self.learnt[track["model"].binary] = track["_id"]
+                self.objects[track["model"].binary] = track["_id"]
+                learnt.append(track["_id"])
+            self.touched.add(track["_id"])
+            self.changes += [{"map": self.map_name, "time": time, "cluster_id": cluster_id,
+                              "kind": change.kind,
+                              "before": [ObjectId(e) for e in change.before],
+                              "after": [ObjectId(e) for e in change.after]}
+                             for change in self.learner.history]
+            self.learner.history.clear()
+        return learnt
+
+    def entry_mates(self, object_id: ObjectId) -> list[ObjectId]:
+        """The other objects whose tracks made models of the entry the object's current model
+        is in (Duceux 6.3: one entry, one object learnt), in the order of their models."""
+        track = self.tracks.get(object_id)
+        model = track and track.get("model") and track["model"].binary
+        entry = self.learner.cluster_of.get(model)
+        if entry is None:
+            return []
+        return [o for o in dict.fromkeys(self.objects.get(m) for m in
+                                         sorted(self.learner.members[entry]))
+                if o is not None and o != object_id]
+
+    def finish(self) -> None:
+        """Write what the batch learnt (in the batch's transaction)."""
+        if self.touched:
+            self.stage.tracks.bulk_write([ReplaceOne({"_id": t}, self.tracks[t], upsert=True)
+                                          for t in sorted(self.touched)], session=self.session)
+        if self.changes:
+            self.stage.history.insert_many(self.changes, session=self.session)
+        self.stage._write(self.learner, self.objects, self.map_name, self.learnt, self.session)

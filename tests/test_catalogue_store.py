@@ -134,6 +134,11 @@ def test_what_the_catalogue_learns_as_one_object_the_belief_holds_as_one(store, 
     assert not [k for k in kinds.values() if len(k) > 1]
     observed = store.clusters.count_documents({"object_id": {"$ne": None}})
     assert store.db["events"].count_documents({"cluster_id": {"$ne": None}}) == observed
+    # the joined tracks' first sightings are moves of the older objects now, with the likeness
+    recalled = list(store.db["events"].find({"explanation": "move", "alternatives": {
+        "$size": 1}, "alternatives.0.object_id": None, "alternatives.0.explanation": "appear"}))
+    assert len(recalled) >= without - len(kinds)
+    assert all(0 < e["probability"] <= 1 for e in recalled)
 
 
 def test_seen_before_an_unknown_cluster_is_not_found(store):

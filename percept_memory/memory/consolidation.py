@@ -232,13 +232,27 @@ class Consolidation:
             if object_id not in known.docs or not mates:
                 continue
             later.write()  # the merge reads the events and moves the links
+            started = known.docs[object_id]["first_seen"]
             for mate in mates:
                 if not (self._seen_together(object_id, mate, session)
                         or self._split_between(object_id, mate, session)):
+                    likeness = learning.likeness(object_id, mate)
                     self._merge(object_id, mate, scene, known, session)
                     merged[mate] = object_id
+                    self._appeared_as_moved(object_id, started, likeness, session)
         if merged:
             self.decided.update((c, _after(merged, o)) for c, o in self.decided.items())
+
+    def _appeared_as_moved(self, object_id, started: int, likeness: float, session) -> None:
+        """The track the catalogue joined to an older object began with an "appear": it was
+        that object, moved there unseen. Its probability is the catalogue's likeness of the
+        two (how much of the new track's model the old one's hold), not a calibrated one."""
+        self.events.update_one(
+            {"object_id": object_id, "time": started, "explanation": Explanation.APPEAR.value},
+            {"$set": {"explanation": Explanation.MOVE.value, "probability": likeness,
+                      "alternatives": [{"object_id": None,
+                                        "explanation": Explanation.APPEAR.value,
+                                        "probability": 1 - likeness}]}}, session=session)
 
     def _asked_to_merge(self, asked: dict, seen_as: dict, session) -> list:
         """(object, the object to merge into it): a cluster of this scene is, a person said,

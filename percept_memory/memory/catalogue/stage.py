@@ -31,7 +31,7 @@ from pymongo import DeleteOne, ReplaceOne, UpdateOne
 from ..consolidation import Consolidation
 from ..schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, MAPS
 from ..store import MemoryStore
-from .graph_of_views import GraphOfViews
+from .graph_of_views import GraphOfViews, inclusion_degree
 from .learning import Learner, Parameters
 from .views import observation_views
 
@@ -223,6 +223,16 @@ class Batch:
         return [o for o in dict.fromkeys(self.objects.get(m) for m in
                                          sorted(self.learner.members[entry]))
                 if o is not None and o != object_id]
+
+    def likeness(self, object_id: ObjectId, mate: ObjectId) -> float:
+        """How much of the object's current model the mate's models of its entry hold
+        (inclusion, eq. 5.2: 1 when they explain all of it)."""
+        model = self.tracks[object_id]["model"].binary
+        theirs = [self.learner.models[m].graph.elements
+                  for m in self.learner.members[self.learner.cluster_of[model]]
+                  if self.objects.get(m) == mate]
+        return inclusion_degree(self.learner.models[model].graph,
+                                GraphOfViews(frozenset().union(*theirs)))
 
     def finish(self) -> None:
         """Write what the batch learnt (in the batch's transaction)."""

@@ -247,6 +247,13 @@ class Server:
     def events(self, scene_id: str) -> list[dict]:
         return list(self.db["events"].find({"scene_id": ObjectId(scene_id)}))
 
+    def objects_of(self, cluster_ids: list[str]) -> dict[str, Any]:
+        """Cluster id -> the object its event names now (merges move events to the object
+        kept)."""
+        return {str(e["cluster_id"]): e["object_id"] for e in self.db["events"].find(
+            {"cluster_id": {"$in": [ObjectId(c) for c in cluster_ids]}},
+            {"cluster_id": 1, "object_id": 1})}
+
     def where_is(self, object_id: Any) -> dict | None:
         response = self.http.get("/api/where-is", params={"x": str(object_id), "limit": 1})
         response.raise_for_status()
@@ -645,20 +652,26 @@ def sendable(scene: Scene) -> Scene:
 
 def check_real(server: Server, scenes: list[Scene], truth) -> dict[str, Any]:
     """POST every scene; `truth(scene index, cluster)` names a cluster's real item (or None).
-    Objects believed vs real items, objects mixing items, items split over objects."""
-    items: dict[Any, set] = defaultdict(set)  # believed object -> real items
-    objects_of: dict[str, set] = defaultdict(set)  # real item -> believed objects
+    Objects believed at the end vs real items (each cluster's object once every scene is in:
+    identity may later merge the object a scene was answered with into another), objects
+    mixing items, items split over objects; and the ids the scenes were answered with."""
+    real_of: dict[str, Any] = {}  # cluster id -> its real item
+    answered: set = set()  # object ids the scenes' events named when they were answered
     for i, scene in enumerate(scenes):
         answer, _ = server.post(sendable(scene))
-        events = {str(e["cluster_id"]): e["object_id"]
-                  for e in server.events(answer["scene_id"]) if e["cluster_id"] is not None}
+        answered |= {e["object_id"] for e in server.events(answer["scene_id"])
+                     if e["cluster_id"] is not None}
         for cluster, cluster_id in zip(scene.clusters, answer["cluster_ids"], strict=True):
-            real = truth(i, cluster)
-            items[events[cluster_id]].add(real)
-            objects_of[real].add(events[cluster_id])
+            real_of[cluster_id] = truth(i, cluster)
+    items: dict[Any, set] = defaultdict(set)  # believed object -> real items
+    objects_of: dict[str, set] = defaultdict(set)  # real item -> believed objects
+    for cluster_id, object_id in server.objects_of(list(real_of)).items():
+        items[object_id].add(real_of[cluster_id])
+        objects_of[real_of[cluster_id]].add(object_id)
     mixed = [sorted(map(str, m)) for m in items.values() if len(m) > 1]
     return {"scenes": len(scenes), "clusters": sum(len(s.clusters) for s in scenes),
             "real_items": len(objects_of), "objects_believed": len(items),
+            "ids_answered": len(answered),
             "objects_mixing_items": len(mixed), "mixes": sorted(mixed),
             "items_split": {str(k): len(v) for k, v in objects_of.items() if len(v) > 1}}
 

@@ -144,6 +144,10 @@ def test_what_the_catalogue_learns_as_one_object_the_belief_holds_as_one(store, 
         "$size": 1}, "alternatives.0.object_id": None, "alternatives.0.explanation": "appear"}))
     assert len(recalled) >= without - len(kinds)
     assert all(0 < e["probability"] <= 1 for e in recalled)
+    # and the catalogue's models and tracks of a merged object are those of the object kept
+    objects = set(kinds)
+    assert set(store.db[CATALOGUE].distinct("object_id")) <= objects
+    assert set(store.db[CATALOGUE_TRACKS].distinct("_id")) <= objects
 
 
 def test_seen_before_an_unknown_cluster_is_not_found(store):

@@ -98,6 +98,7 @@ class Consolidation:
         # as identity decides, so that the objects it holds for one are merged (`_recalled`)
         # before the next scene is decided, live and in a rebuild alike, whatever the batching
         self.catalogue = None
+        self._learning = None  # the catalogue's batch being learnt (CatalogueStage.begin)
 
     def apply(self, scene_ids: Sequence[ObjectId], map_name: str, session) -> None:
         stored = self.calibrations.find_one({"_id": map_name}, session=session)
@@ -109,7 +110,7 @@ class Consolidation:
         # one round trip a batch, not one a scene: splits are rare, most stores have none
         self._any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
                                                        session=session) is not None
-        learning = self.catalogue and self.catalogue.begin(map_name, session)
+        learning = self._learning = self.catalogue and self.catalogue.begin(map_name, session)
         for scene, arrived in self._scenes(scene_ids, session):
             self.consolidate(scene, arrived, calibration, known, later, session)
             if learning:
@@ -118,6 +119,7 @@ class Consolidation:
         later.write()
         if learning:
             learning.finish()
+        self._learning = None
         self.calibrations.replace_one(
             {"_id": map_name}, {"cues": calibration.to_document(), "version": known.version},
             upsert=True, session=session)
@@ -374,6 +376,8 @@ class Consolidation:
                                         session=session)
         known.refresh(self.objects, {"_id": keep}, session)
         known.drop(twin)
+        if self._learning:  # (the catalogue's models of twin are keep's)
+            self._learning.merged(keep, twin)
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and

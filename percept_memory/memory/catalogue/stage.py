@@ -234,6 +234,30 @@ class Batch:
         return inclusion_degree(self.learner.models[model].graph,
                                 GraphOfViews(frozenset().union(*theirs)))
 
+    def merged(self, keep: ObjectId, twin: ObjectId) -> None:
+        """Identity merged object `twin` into `keep`: twin's models are keep's now, and so
+        are its track's sightings (its unfinished model stays as it is: no observation will
+        grow it)."""
+        for model, owner in self.objects.items():
+            if owner == twin:
+                self.objects[model] = keep
+        self.learnt = {m: keep if o == twin else o for m, o in self.learnt.items()}
+        self.stage.models.update_many({"map": self.map_name, "object_id": twin},
+                                      {"$set": {"object_id": keep}}, session=self.session)
+        unread = {keep, twin} - self.tracks.keys()
+        if unread:
+            self.tracks.update((doc["_id"], doc) for doc in self.stage.tracks.find(
+                {"_id": {"$in": list(unread)}}, session=self.session))
+        gone = self.tracks.pop(twin, None)
+        if gone is None:
+            return
+        self.stage.tracks.delete_one({"_id": twin}, session=self.session)
+        self.touched.discard(twin)
+        track = self.tracks.setdefault(keep, {"_id": keep, "map": self.map_name, "seen": 0})
+        track["seen"] += gone["seen"]
+        track["last_seen"] = max(track.get("last_seen") or 0, gone.get("last_seen") or 0)
+        self.touched.add(keep)
+
     def finish(self) -> None:
         """Write what the batch learnt (in the batch's transaction)."""
         if self.touched:

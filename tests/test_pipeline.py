@@ -8,6 +8,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -353,11 +354,17 @@ def _free_port() -> int:
 
 
 def _consolidator(uri: str, db: str) -> subprocess.Popen:
-    """`pmem consolidate` in a process of its own, once it says it is consolidating."""
+    """`pmem consolidate` in a process of its own, once it says it is consolidating; its log
+    is read as it comes (`process.log`, complete once `process.reader` ended): a pipe nobody
+    reads blocks a process that logs much, as a consolidator does while mongod is down."""
     env = {**os.environ, "MONGODB_URI": uri, "PMEM_DB": db, "PMEM_MAP_LEASE_S": "2"}
     process = subprocess.Popen([sys.executable, "-m", "percept_memory", "consolidate"],
                                env=env, stderr=subprocess.PIPE, text=True)
     assert "consolidating" in process.stderr.readline()
+    process.log = []  # type: ignore[attr-defined]
+    process.reader = threading.Thread(  # type: ignore[attr-defined]
+        target=process.log.extend, args=(process.stderr,), daemon=True)
+    process.reader.start()
     return process
 
 
@@ -398,14 +405,14 @@ def test_kill_9_of_the_consolidator_and_of_mongod_loses_nothing_and_doubles_noth
                 consolidator.send_signal(signal.SIGKILL)
                 consolidator.wait()
                 consolidator = _consolidator(uri, db)
-                _consolidated(store, acknowledged, within_s=20)  # (the lease is 2 s)
+                _consolidated(store, acknowledged, 20, consolidator)  # (the lease is 2 s)
             if i == 2 * third:
                 killed = mongod.status()["pid"]
                 os.kill(killed, signal.SIGKILL)
                 time.sleep(1)
                 mongod.start()
                 assert mongod.status()["pid"] != killed
-        _consolidated(store, acknowledged, within_s=180)
+        _consolidated(store, acknowledged, 180, consolidator)
         clusters = [c for ids in acknowledged for c in ids.cluster_ids]
         events = list(store.db[EVENTS].find({"cluster_id": {"$ne": None}}, {"cluster_id": 1}))
         assert sorted(e["cluster_id"] for e in events) == sorted(clusters)  # each exactly once
@@ -422,12 +429,15 @@ def test_kill_9_of_the_consolidator_and_of_mongod_loses_nothing_and_doubles_noth
     mongod.stop()
 
 
-def _consolidated(store: MemoryStore, acknowledged: list, within_s: float) -> None:
-    """Wait until the acknowledged scenes went through the pipeline: at most `within_s`."""
+def _consolidated(store: MemoryStore, acknowledged: list, within_s: float,
+                  consolidator: subprocess.Popen) -> None:
+    """Wait until the acknowledged scenes went through the pipeline: at most `within_s` (the
+    consolidator's log in the message when not)."""
     scenes = [ids.scene_id for ids in acknowledged]
     deadline = time.monotonic() + within_s
     while store.db[OUTBOX].count_documents({"_id": {"$in": scenes}}):
-        assert time.monotonic() < deadline, f"not consolidated within {within_s} s"
+        assert time.monotonic() < deadline, (f"not consolidated within {within_s} s; the "
+                                             f"consolidator said: {''.join(consolidator.log)}")
         time.sleep(0.2)
 
 
@@ -435,5 +445,6 @@ def test_a_consolidator_process_stops_cleanly_on_sigterm(mongo_uri, db_name):
     process = _consolidator(mongo_uri, db_name)
     process.send_signal(signal.SIGTERM)
     assert process.wait(timeout=30) == 0
-    assert "consolidator stopped" in process.stderr.read()
+    process.reader.join(timeout=10)
+    assert "consolidator stopped" in "".join(process.log)
 

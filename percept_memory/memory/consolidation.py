@@ -115,7 +115,7 @@ class Consolidation:
             self.consolidate(scene, arrived, calibration, known, later, session)
             if learning:
                 learnt = learning.observe([c.id for c in scene.clusters], scene.timestamp)
-                self._recalled(scene, learnt, learning, known, later, session)
+                self._recalled(scene, learnt, known, later, session)
         later.write()
         if learning:
             learning.finish()
@@ -215,8 +215,8 @@ class Consolidation:
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
 
-    def _recalled(self, scene: Scene, learnt: list, learning, known: KnownObjects,
-                  later: Later, session) -> None:
+    def _recalled(self, scene: Scene, learnt: list, known: KnownObjects, later: Later,
+                  session) -> None:
         """One object remembered as several, which the catalogue learnt as one (Duceux 6.3:
         an entry is an object learnt from all its partial views): an object seen in the scene
         whose model the catalogue just put in an entry with other objects' models is one
@@ -225,10 +225,12 @@ class Consolidation:
         came back after hours, moved, showing a side identity had not linked to it). Only
         after a long absence (RECALL_AFTER_NS): the catalogue remembers what objects look like,
         identity where they have just been."""
+        if not learnt:
+            return
         seen = {self.decided[c.id] for c in scene.clusters if c.id in self.decided}
         merged: dict = {}
         for object_id in learnt:
-            mates = [m for m in learning.entry_mates(object_id)
+            mates = [m for m in self._learning.entry_mates(object_id)
                      if m in known.docs and m not in seen
                      and scene.timestamp - known.docs[m]["last_seen"] >= RECALL_AFTER_NS]
             if object_id not in known.docs or not mates:
@@ -238,7 +240,7 @@ class Consolidation:
             for mate in mates:
                 if not (self._seen_together(object_id, mate, session)
                         or self._split_between(object_id, mate, session)):
-                    likeness = learning.likeness(object_id, mate)
+                    likeness = self._learning.likeness(object_id, mate)
                     self._merge(object_id, mate, scene, known, session)
                     merged[mate] = object_id
                     self._appeared_as_moved(object_id, started, likeness, session)

@@ -102,36 +102,6 @@ class CatalogueStage:
         self._learners.pop(map_name)  # until this transaction's writes are known to be in
         return Batch(self, map_name, learner, objects, session)
 
-    def _objects(self, cluster_ids: list, session) -> dict:
-        """The object of each cluster as identity made it by the end of the cluster's scene,
-        so that the catalogue learns the same in any batching of the scenes; for clusters
-        identity did not decide in this batch (it ran elsewhere), the object they are now."""
-        decided = self.identity.decided
-        objects = {c: decided[c] for c in cluster_ids if c in decided}
-        rest = [c for c in cluster_ids if c not in decided]
-        if rest:
-            objects.update((doc["_id"], doc["object_id"]) for doc in self.store.clusters.find(
-                {"_id": {"$in": rest}, "object_id": {"$ne": None}}, {"object_id": 1},
-                session=session))
-        return objects
-
-    def _observe(self, learner: Learner, track: dict, cluster_id: ObjectId, views: list[str],
-                 time: int) -> bool:
-        """Add an observation to the track's model; learn the model again if it grew
-        (True)."""
-        if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
-            track.update(model=cluster_id, elements=[], last=[], observations=0)
-        before = set(track["elements"])
-        grown = GraphOfViews.of_sequence([views], after=track["last"])
-        track.update(last=views, observations=track["observations"] + 1,
-                     seen=track["seen"] + 1, last_seen=time)
-        if grown.elements <= before:
-            return False
-        track["elements"] = sorted(before | grown.elements)
-        learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
-                      track["observations"])
-        return True
-
     def _write(self, learner: Learner, objects: dict, map_name: str, learnt: dict,
                session) -> None:
         """The models that changed, and a new version of the map's catalogue. `learnt`: the
@@ -185,10 +155,10 @@ class Batch:
     def observe(self, cluster_ids: Sequence[ObjectId], time: int) -> list[ObjectId]:
         """Learn one scene's clusters (those identity linked to an object), in order; the
         objects whose model was learnt (again)."""
-        objects = self.stage._objects(list(cluster_ids), self.session)
+        objects = self._objects(list(cluster_ids))
         evidence = self.stage.identity.observations(list(objects), self.session)
         learnt: list[ObjectId] = []
-        unread = {objects[c] for c in objects} - self.tracks.keys()
+        unread = set(objects.values()) - self.tracks.keys()
         if unread:
             self.tracks.update((doc["_id"], doc) for doc in self.stage.tracks.find(
                 {"_id": {"$in": list(unread)}}, session=self.session))
@@ -199,7 +169,7 @@ class Batch:
                 continue
             track = self.tracks.setdefault(objects[cluster_id], {
                 "_id": objects[cluster_id], "map": self.map_name, "seen": 0})
-            if self.stage._observe(self.learner, track, cluster_id, views, time):
+            if self._grow(track, cluster_id, views, time):
                 self.learnt[track["model"].binary] = track["_id"]
                 self.objects[track["model"].binary] = track["_id"]
                 learnt.append(track["_id"])
@@ -211,6 +181,36 @@ class Batch:
                              for change in self.learner.history]
             self.learner.history.clear()
         return learnt
+
+    def _objects(self, cluster_ids: list) -> dict:
+        """The object of each cluster as identity made it by the end of the cluster's scene,
+        so that the catalogue learns the same in any batching of the scenes; for clusters
+        identity did not decide in this batch (it ran elsewhere), the object they are now."""
+        decided = self.stage.identity.decided
+        objects = {c: decided[c] for c in cluster_ids if c in decided}
+        rest = [c for c in cluster_ids if c not in decided]
+        if rest:
+            objects.update((doc["_id"], doc["object_id"]) for doc in
+                           self.stage.store.clusters.find(
+                               {"_id": {"$in": rest}, "object_id": {"$ne": None}},
+                               {"object_id": 1}, session=self.session))
+        return objects
+
+    def _grow(self, track: dict, cluster_id: ObjectId, views: list[str], time: int) -> bool:
+        """Add an observation to the track's model; learn the model again if it grew
+        (True)."""
+        if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
+            track.update(model=cluster_id, elements=[], last=[], observations=0)
+        before = set(track["elements"])
+        grown = GraphOfViews.of_sequence([views], after=track["last"])
+        track.update(last=views, observations=track["observations"] + 1,
+                     seen=track["seen"] + 1, last_seen=time)
+        if grown.elements <= before:
+            return False
+        track["elements"] = sorted(before | grown.elements)
+        self.learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
+                           track["observations"])
+        return True
 
     def entry_mates(self, object_id: ObjectId) -> list[ObjectId]:
         """The other objects whose tracks made models of the entry the object's current model

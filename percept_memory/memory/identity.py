@@ -80,13 +80,14 @@ class Parameters:
     # and again (0.3) since their lower tail is (Histogram.log_density)
     prior_appear: float = 0.15
     prior_gone: float = 0.25
-    # looks-the-same odds beyond which another known object is a lookalike (Decision). High,
-    # or a crowded world of look-alikes merges distinct objects (bench/belief.py --crowded:
-    # at 30, tune seed 1001's 105 objects seen end as 95); but the odds of different objects
-    # are learnt with a cautious lower tail (Histogram.log_density), under which one object's
-    # own looks reach a few hundred at most in its first scenes: at 1000, no object
-    # remembered twice was merged and strict association fell from 96.3 to 90.7 % (tune
-    # seeds, sigma 0.025; 100: 95.0).
+    # looks-the-same odds beyond which another known object is a lookalike (Decision), if it
+    # looks at least 1/superseded as alike as the object decided on (one object remembered
+    # twice looks as alike as itself; a look-alike of a crowded world less: with the odds
+    # alone, tune seed 1001's crowded world of 105 objects seen ended with 95, merged; with
+    # both, 99). The odds of different objects are learnt with a cautious lower tail
+    # (Histogram.log_density), under which one object's own looks reach a few hundred at most
+    # in its first scenes: at 1000, no object remembered twice was merged and strict
+    # association fell from 96.3 to 90.7 % (tune seeds, sigma 0.025; 100: 95.0).
     lookalike_odds: float = 30.0
     # Of two known objects the new observation looks like beyond doubt (lookalike_odds), the
     # one seen last is likelier the one moved here: the move odds of one that looks no
@@ -612,7 +613,8 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
                 else None if max(look_odds[i, j], other_odds[i, j]) < params.same_look_odds
                 else known[j].last.key if look_odds[i, j] >= other_odds[i, j]
                 else other_look[i][j])
-        alike = np.maximum(look_odds[i], other_odds[i]) >= params.lookalike_odds
+        odds = np.maximum(look_odds[i], other_odds[i])
+        alike = (odds >= params.lookalike_odds) & (odds * params.superseded >= odds[j])
         decisions.append(Decision(observation.key, known[j].key, explanation,
                                   _probability(alternatives, known[j].key, explanation),
                                   alternatives, look,

@@ -13,6 +13,7 @@ import time
 
 import pytest
 from pymongo import MongoClient
+from pymongo.errors import ConfigurationError
 
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
@@ -243,6 +244,39 @@ def test_a_scene_that_keeps_failing_is_held_with_its_error_and_the_rest_go_on(em
     live = canonical_belief(empty)
     assert rebuilt(empty) == live
 
+
+
+class Restarting:
+    """A stage whose database is restarting for its first `times` calls: a mongod killed and
+    started again answers, until it is a member of its replica set again, as a deployment
+    without sessions (met by the kill -9 test)."""
+
+    name = "restarting"
+    belief = False
+
+    def __init__(self, times: int):
+        self.times = times
+
+    def apply(self, scene_ids, map_name, session):
+        if self.times:
+            self.times -= 1
+            raise ConfigurationError("Sessions are not supported by this MongoDB deployment")
+
+    def reset(self, map_name):
+        pass
+
+
+def test_a_database_restarting_is_waited_out_and_counts_against_no_scene(empty, week):
+    ids = IngestService(empty).ingest_batch(week.scenes[:6])
+    pipeline = Pipeline(empty, [Consolidation(empty), Restarting(times=8)], backoff_s=0.01,
+                        max_attempts=3)
+    for _ in range(8):
+        with pytest.raises(ConfigurationError):
+            pipeline.run_once()
+    assert not status(empty)["held"]
+    assert empty.db[OUTBOX].count_documents({"attempts": {"$gt": 0}}) == 0
+    pipeline.drain(timeout=60)
+    assert not empty.db[OUTBOX].count_documents({"_id": {"$in": [i.scene_id for i in ids]}})
 
 def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, db_name):
     from click.testing import CliRunner

@@ -51,6 +51,7 @@ from bson import ObjectId
 from pymongo import ASCENDING, ReturnDocument
 from pymongo.errors import (
     BulkWriteError,
+    ConfigurationError,
     ConnectionFailure,
     DuplicateKeyError,
     OperationFailure,
@@ -285,7 +286,9 @@ class Pipeline:
                 continue
             try:
                 self._apply(map_name, token, entries, session)
-            except (LeaseLost, ConnectionFailure):  # not the scene's fault: try again later
+            # not the scene's fault: try again later (a mongod restarting answers as a
+            # deployment without sessions until it is a replica set's member again)
+            except (LeaseLost, ConnectionFailure, ConfigurationError):
                 raise
             except Exception as error:  # any stage's failure: kept with the scene, retried
                 if len(entries) > 1:

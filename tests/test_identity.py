@@ -327,6 +327,7 @@ def test_a_lookalike_is_one_that_looks_as_alike_as_the_object_itself():
     assert (decision.object, decision.explanation) == ("cup", STAY)
     assert set(decision.lookalikes) == {"twin"}
 
+
 def test_the_dwell_time_is_learnt_from_the_places_looked_at():
     """Objects found gone from their place one look in five, 10 s after they were last seen:
     an object stays about 50 s (the prior said an hour, now forgotten)."""

@@ -245,14 +245,12 @@ def test_a_scene_that_keeps_failing_is_held_with_its_error_and_the_rest_go_on(em
     assert rebuilt(empty) == live
 
 
-
-class Restarting:
+class Restarting(Failing):
     """A stage whose database is restarting for its first `times` calls: a mongod killed and
     started again answers, until it is a member of its replica set again, as a deployment
     without sessions (met by the kill -9 test)."""
 
     name = "restarting"
-    belief = False
 
     def __init__(self, times: int):
         self.times = times
@@ -261,9 +259,6 @@ class Restarting:
         if self.times:
             self.times -= 1
             raise ConfigurationError("Sessions are not supported by this MongoDB deployment")
-
-    def reset(self, map_name):
-        pass
 
 
 def test_a_database_restarting_is_waited_out_and_counts_against_no_scene(empty, week):
@@ -277,6 +272,7 @@ def test_a_database_restarting_is_waited_out_and_counts_against_no_scene(empty, 
     assert empty.db[OUTBOX].count_documents({"attempts": {"$gt": 0}}) == 0
     pipeline.drain(timeout=60)
     assert not empty.db[OUTBOX].count_documents({"_id": {"$in": [i.scene_id for i in ids]}})
+
 
 def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, db_name):
     from click.testing import CliRunner

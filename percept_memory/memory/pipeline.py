@@ -45,7 +45,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
-from typing import Any, Protocol
+from typing import Protocol
 
 from bson import ObjectId
 from pymongo import ASCENDING, ReturnDocument
@@ -146,14 +146,16 @@ class Pipeline:
                 time.sleep(self.poll_s / 5)
         return total
 
-    def pending(self, scene_ids: Iterable[ObjectId] | None = None) -> int:
-        """Scenes waiting for their stages (of these scenes, if given), held ones aside; maps
-        waiting to be rebuilt count as pending too."""
-        query: dict[str, Any] = {"held": False}
-        if scene_ids is not None:
-            return self.outbox.count_documents({**query, "_id": {"$in": list(scene_ids)}})
-        return (self.outbox.count_documents(query)
+    def pending(self) -> int:
+        """Scenes waiting for their stages, held ones aside; maps waiting to be rebuilt count
+        as pending too."""
+        return (self.outbox.count_documents({"held": False})
                 + self.maps.count_documents({"rebuild": True}))
+
+    def _maps_pending(self, scene_ids: Sequence[ObjectId]) -> list[str]:
+        """The maps of those of these scenes still waiting for their stages."""
+        return sorted(self.outbox.distinct("map", {"_id": {"$in": list(scene_ids)},
+                                                   "held": False}))
 
     def wait(self, scene_ids: Sequence[ObjectId], timeout: float) -> bool:
         """Until these scenes went through (True) or the timeout passed (False). Works on them
@@ -164,10 +166,10 @@ class Pipeline:
             self._ingest.notify_all()
         self._wake.set()
         try:
-            while self.pending(scene_ids):
+            while maps := self._maps_pending(scene_ids):
                 if time.monotonic() >= deadline:
                     return False
-                if self._thread is None and self.run_once():
+                if self._thread is None and sum(self._work_on(name) for name in maps):
                     continue
                 self._committed.clear()
                 self._committed.wait(min(0.01, max(deadline - time.monotonic(), 0)))
@@ -257,27 +259,37 @@ class Pipeline:
             if lease is None:
                 return 0
             token = lease["lease"]["token"]
+            released = False
             try:
                 if lease.get("rebuild"):
                     self._rebuild(map_name, token)
                     lease["consolidated"] = None
-                return self._consolidate(map_name, token, lease.get("consolidated"), session)
+                count, released = self._consolidate(map_name, token, lease.get("consolidated"),
+                                                    session)
+                return count
             except LeaseLost:
                 log.warning("pipeline: lost the lease of map %r to another consolidator",
                             map_name)
                 return 0
             finally:
-                self.maps.update_one({"_id": map_name, "lease.token": token},
-                                     {"$set": {"lease": None}})
+                if not released:
+                    self.maps.update_one({"_id": map_name, "lease.token": token},
+                                         {"$set": {"lease": None}})
 
-    def _consolidate(self, map_name: str, token: ObjectId, watermark, session) -> int:
+    def _consolidate(self, map_name: str, token: ObjectId, watermark, session
+                     ) -> tuple[int, bool]:
         """The map's due entries in order, a batch per transaction; a batch that fails is
-        tried scene by scene, so only the failing scene waits and is counted against."""
+        tried scene by scene, so only the failing scene waits and is counted against. The
+        scenes that went through, and whether the lease went with the last batch: a batch that
+        leaves no entry due releases it in its own transaction (no round trip of its own)."""
         count, size = 0, self.batch
         while True:
-            entries = self._next(map_name, min(size, self._give_way()))
+            wanted = min(size, self._give_way())
+            entries = self._next(map_name, wanted + 1)
             if not entries:
-                return count
+                return count, False
+            last = len(entries) <= wanted
+            entries = entries[:wanted]
             head = (entries[0]["time"], entries[0]["_id"])
             if watermark is not None and head <= tuple(watermark):
                 log.info("pipeline: a late scene rebuilds map %r", map_name)
@@ -285,7 +297,7 @@ class Pipeline:
                 watermark = None
                 continue
             try:
-                self._apply(map_name, token, entries, session)
+                self._apply(map_name, token, entries, session, release=last)
             # not the scene's fault: try again later (a mongod restarting answers as a
             # deployment without sessions until it is a replica set's member again)
             except (LeaseLost, ConnectionFailure, ConfigurationError):
@@ -296,9 +308,11 @@ class Pipeline:
                     continue
                 self._failed(entries[0], error)
                 if entries[0]["attempts"] + 1 < self.max_attempts:
-                    return count  # the map waits out the backoff, in order
+                    return count, False  # the map waits out the backoff, in order
                 continue
             count += len(entries)
+            if last:
+                return count, True
             size = self.batch
             watermark = (entries[-1]["time"], entries[-1]["_id"])
 
@@ -312,15 +326,19 @@ class Pipeline:
             entries.append(entry)
         return entries
 
-    def _apply(self, map_name: str, token: ObjectId, entries: list[dict], session) -> None:
+    def _apply(self, map_name: str, token: ObjectId, entries: list[dict], session,
+               release: bool = False) -> None:
+        """The stages on these entries and their removal, in one transaction that checks the
+        lease is still ours (and ends it, when `release`)."""
         ids = [entry["_id"] for entry in entries]
         last = entries[-1]
 
         def work(session):
+            lease = {"lease": None} if release else {"lease.until": utc_now() + self.lease}
             fenced = self.maps.update_one(
                 {"_id": map_name, "lease.token": token},
-                {"$set": {"lease.until": utc_now() + self.lease,
-                          "consolidated": [last["time"], last["_id"]], "updated": utc_now()}},
+                {"$set": {**lease, "consolidated": [last["time"], last["_id"]],
+                          "updated": utc_now()}},
                 session=session)
             if not fenced.matched_count:
                 raise LeaseLost(map_name)
@@ -356,19 +374,22 @@ class Pipeline:
         `session`; None when another holds it. The session of an expired lease is killed
         first (a read is not held up by what a transaction left open; the write would be)."""
         now = utc_now()
+        lease = {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
+                                    "until": now + self.lease, "session": session.session_id}}}
+        try:  # a free lease (the usual case: one round trip): no transaction of it is open
+            return self.maps.find_one_and_update({"_id": map_name, "lease": None}, lease,
+                                                 upsert=True,
+                                                 return_document=ReturnDocument.AFTER)
+        except DuplicateKeyError:  # held, maybe expired
+            pass
         expired = self.maps.find_one({"_id": map_name, "lease.until": {"$lt": now}},
                                      {"lease.session": 1})
-        if expired and expired["lease"].get("session"):
-            self._kill(expired["lease"]["session"])
-        try:
-            return self.maps.find_one_and_update(
-                {"_id": map_name, "$or": [{"lease": None}, {"lease.until": {"$lt": now}}]},
-                {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
-                                    "until": now + self.lease,
-                                    "session": session.session_id}}},
-                upsert=True, return_document=ReturnDocument.AFTER)
-        except DuplicateKeyError:
+        if expired is None:
             return None
+        if expired["lease"].get("session"):
+            self._kill(expired["lease"]["session"])
+        return self.maps.find_one_and_update({"_id": map_name, "lease.until": {"$lt": now}},
+                                             lease, return_document=ReturnDocument.AFTER)
 
     def _kill(self, session_id: dict) -> None:
         """Abort whatever the session of a lease that ran out left open (its consolidator

@@ -350,15 +350,13 @@ def blob_ids(docs: Iterable[Mapping]) -> list[str]:
     return sorted({blob for doc in docs for blob in _references(doc)})
 
 
-def _references(value) -> Iterable[str]:
-    if isinstance(value, Mapping):
-        if BLOB_KEY in value:
-            yield value[BLOB_KEY]
-        else:
-            for item in value.values():
-                yield from _references(item)
-    elif isinstance(value, list):
-        for item in value:
+def _references(value: dict | list) -> Iterable[str]:
+    """(Only containers are descended into: a descriptor's thousand numbers are not.)"""
+    if isinstance(value, dict) and BLOB_KEY in value:
+        yield value[BLOB_KEY]
+        return
+    for item in value.values() if isinstance(value, dict) else value:
+        if isinstance(item, dict | list):
             yield from _references(item)
 
 

@@ -110,7 +110,8 @@ class Consolidation:
         # one round trip a batch, not one a scene: splits are rare, most stores have none
         self._any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
                                                        session=session) is not None
-        learning = self._learning = self.catalogue and self.catalogue.begin(map_name, session)
+        learning = self._learning = self.catalogue and self.catalogue.begin(
+            map_name, session, stored and stored.get("version"))
         for scene, arrived in self._scenes(scene_ids, session):
             self.consolidate(scene, arrived, calibration, known, later, session)
             if learning:
@@ -118,7 +119,7 @@ class Consolidation:
                 self._recalled(scene, learnt, known, later, session)
         later.write()
         if learning:
-            learning.finish()
+            learning.finish(known.version)
         self._learning = None
         self.calibrations.replace_one(
             {"_id": map_name}, {"cues": calibration.to_document(), "version": known.version},
@@ -131,6 +132,12 @@ class Consolidation:
             known = self._known[map_name] = KnownObjects.load(self.objects, map_name, version,
                                                               session)
         return known
+
+    def stored_version(self, map_name: str, session=None) -> ObjectId | None:
+        """The version of the map's belief as stored: written with every batch identity
+        commits (the catalogue's learner, learnt in the same transactions, is of it too)."""
+        stored = self.calibrations.find_one({"_id": map_name}, {"version": 1}, session=session)
+        return stored and stored.get("version")
 
     def reset(self, map_name: str) -> None:
         """Forget the map's objects, their events and what its calibration learnt."""

@@ -45,6 +45,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
+from itertools import islice
 from typing import Protocol
 
 from bson import ObjectId
@@ -70,6 +71,8 @@ BATCH = 32
 MAX_ATTEMPTS = 5
 BACKOFF_S = 0.5  # then 1, 2, 4 s: a failing scene holds its map about 8 s before it is held
 POLL_S = 0.25
+WAIT_POLL_S = 0.05  # a caller waiting for scenes another process consolidates asks this often
+RECENT = 4096  # scenes committed here that a waiter in this process is told of
 YIELD_S = 1.0  # the longest a consolidator thread waits for ingest to pause
 QUIET_S = 0.02  # ingest has paused when nothing was stored this long
 BUSY_S = 1.0  # after ingest, a consolidator thread takes one scene at a time this long
@@ -122,7 +125,10 @@ class Pipeline:
         self._storing = 0  # batches being stored in this process now
         self._stored_at = -BUSY_S  # when the last one was (time.monotonic)
         self._waiting = 0  # callers of `wait` in this process now
-        self._committed = threading.Event()  # set by each batch this pipeline commits
+        # the scenes this pipeline's last batches committed (newest last, at most RECENT), for
+        # whoever waits for them here: told by the commit instead of asking the database
+        self._went_through: dict[ObjectId, None] = {}
+        self._commits = threading.Condition()
 
     # --- running ---------------------------------------------------------------------------
 
@@ -171,8 +177,13 @@ class Pipeline:
                     return False
                 if self._thread is None and sum(self._work_on(name) for name in maps):
                     continue
-                self._committed.clear()
-                self._committed.wait(min(0.01, max(deadline - time.monotonic(), 0)))
+                # another consolidator works on them: this pipeline's thread tells when it
+                # committed them; one elsewhere is asked after at most WAIT_POLL_S
+                with self._commits:
+                    if self._commits.wait_for(
+                            lambda: all(i in self._went_through for i in scene_ids),
+                            min(WAIT_POLL_S, max(deadline - time.monotonic(), 0))):
+                        return True
             return True
         finally:
             with self._ingest:
@@ -239,7 +250,10 @@ class Pipeline:
         return QUIET_S - (time.monotonic() - self._stored_at)
 
     def run_forever(self) -> None:
-        """Work whenever there is work, until stop(); a database outage is waited out."""
+        """Work whenever there is work, until stop(); a database outage is waited out. A pass
+        takes what was due when it looked: after one that did work, the next looks once
+        ingest has been quiet for QUIET_S (or at once when this process stores a scene), not
+        while whoever waited for that work reads its answer."""
         while not self._stop.is_set():
             try:
                 done = self.run_once()
@@ -247,9 +261,8 @@ class Pipeline:
                 log.warning("pipeline: the database is not answering (%s); retrying", error)
                 done = 0
                 self._stop.wait(5 * self.poll_s)
-            if not done:
-                self._wake.wait(self.poll_s)
-                self._wake.clear()
+            self._wake.wait(QUIET_S if done else self.poll_s)
+            self._wake.clear()
 
     # --- one map ---------------------------------------------------------------------------
 
@@ -354,7 +367,11 @@ class Pipeline:
             self.outbox.delete_many({"_id": {"$in": ids}}, session=session)
 
         self.store._transaction(work, session=session)
-        self._committed.set()
+        with self._commits:
+            self._went_through.update(dict.fromkeys(ids))
+            for old in list(islice(self._went_through, max(len(self._went_through) - RECENT, 0))):
+                del self._went_through[old]
+            self._commits.notify_all()
 
     def _failed(self, entry: dict, error: Exception) -> None:
         attempts = entry["attempts"] + 1

@@ -17,6 +17,7 @@ last (the views of its last observation), seen, last_seen}; `catalogue_history` 
 that merged or split {map, time, cluster_id (the observation whose learning did it), kind,
 before, after}. The learner of each map is kept in
 memory, read again when the stored version differs (another consolidator, an aborted
+transaction: the version is identity's, written with its calibration in the same
 transaction); in it, models are named by their ids' 12 bytes (bytes hash and compare in C,
 ObjectIds in Python: most of the learner's time went there).
 """
@@ -29,7 +30,7 @@ from bson import ObjectId
 from pymongo import DeleteOne, ReplaceOne, UpdateOne
 
 from ..consolidation import Consolidation
-from ..schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS, MAPS
+from ..schema import CATALOGUE, CATALOGUE_HISTORY, CATALOGUE_TRACKS
 from ..store import MemoryStore
 from .graph_of_views import GraphOfViews, inclusion_degree
 from .learning import Learner, Parameters
@@ -53,7 +54,7 @@ HIGH_INCLUSION = 0.75
 # full entry of 5 keeps casting one off as an entry of its own. Kitchen weeks of seeds 1-3
 # (seed 0 is bench/catalogue.py's): 22, 24, 27 entries for 20 objects at 5; 19, 19, 20 at 8.
 MODELS_PER_ENTRY = 8
-VERSION = "catalogue_version"
+UNREAD = object()  # a version not read yet
 
 
 def home_parameters() -> Parameters:
@@ -74,7 +75,6 @@ class CatalogueStage:
         self.models = store.db[CATALOGUE]
         self.tracks = store.db[CATALOGUE_TRACKS]
         self.history = store.db[CATALOGUE_HISTORY]
-        self.maps = store.db[MAPS]
         # map -> (the version its learner is of, the learner, each model's object)
         self._learners: dict[str, tuple[ObjectId | None, Learner, dict]] = {}
 
@@ -82,9 +82,11 @@ class CatalogueStage:
         """The map's catalogue as stored now."""
         return self._learner(map_name, session)[1]
 
-    def _learner(self, map_name: str, session) -> tuple[ObjectId | None, Learner, dict]:
-        stored = self.maps.find_one({"_id": map_name}, {VERSION: 1}, session=session) or {}
-        version = stored.get(VERSION)
+    def _learner(self, map_name: str, session, version=UNREAD
+                 ) -> tuple[ObjectId | None, Learner, dict]:
+        """The map's learner, read again unless it is of the version stored (identity's)."""
+        if version is UNREAD:
+            version = self.identity.stored_version(map_name, session)
         kept = self._learners.get(map_name)
         if kept is None or version is None or kept[0] != version:
             docs = list(self.models.find({"map": map_name}, session=session))
@@ -95,18 +97,20 @@ class CatalogueStage:
                                         {doc["_id"].binary: doc["object_id"] for doc in docs})
         return self._learners[map_name]
 
-    def begin(self, map_name: str, session) -> Batch:
+    def begin(self, map_name: str, session, version: ObjectId | None) -> Batch:
         """A batch of scenes of the map to learn, one `observe` per scene in time order, then
-        `finish` (the writes, in `session`'s transaction)."""
-        _, learner, objects = self._learner(map_name, session)
+        `finish` (the writes, in `session`'s transaction). `version`: identity's, as stored
+        when the transaction began."""
+        _, learner, objects = self._learner(map_name, session, version)
         self._learners.pop(map_name)  # until this transaction's writes are known to be in
         return Batch(self, map_name, learner, objects, session)
 
     def _write(self, learner: Learner, objects: dict, map_name: str, learnt: dict,
-               session) -> None:
-        """The models that changed, and a new version of the map's catalogue. `learnt`: the
-        models learnt (again) in this batch, with their objects: written whole; the others
-        only changed their edges or entry (a model's elements never change under its id)."""
+               session, version: ObjectId) -> None:
+        """The models that changed; the learner is kept as of `version`, the one identity
+        writes in this transaction. `learnt`: the models learnt (again) in this batch, with
+        their objects: written whole; the others only changed their edges or entry (a model's
+        elements never change under its id)."""
         writes = []
         for key in sorted(learner.changed):
             model_id = ObjectId(key)
@@ -127,8 +131,6 @@ class CatalogueStage:
         learner.changed.clear()
         if writes:
             self.models.bulk_write(writes, session=session)
-        version = ObjectId()
-        self.maps.update_one({"_id": map_name}, {"$set": {VERSION: version}}, session=session)
         self._learners[map_name] = (version, learner, objects)
 
     def reset(self, map_name: str) -> None:
@@ -136,7 +138,6 @@ class CatalogueStage:
         self.models.delete_many({"map": map_name})
         self.tracks.delete_many({"map": map_name})
         self.history.delete_many({"map": map_name})
-        self.maps.update_one({"_id": map_name}, {"$unset": {VERSION: ""}})
         self._learners.pop(map_name, None)
 
 
@@ -258,11 +259,13 @@ class Batch:
         track["last_seen"] = max(track.get("last_seen") or 0, gone.get("last_seen") or 0)
         self.touched.add(keep)
 
-    def finish(self) -> None:
-        """Write what the batch learnt (in the batch's transaction)."""
+    def finish(self, version: ObjectId) -> None:
+        """Write what the batch learnt (in the batch's transaction, in which identity writes
+        `version`)."""
         if self.touched:
             self.stage.tracks.bulk_write([ReplaceOne({"_id": t}, self.tracks[t], upsert=True)
                                           for t in sorted(self.touched)], session=self.session)
         if self.changes:
             self.stage.history.insert_many(self.changes, session=self.session)
-        self.stage._write(self.learner, self.objects, self.map_name, self.learnt, self.session)
+        self.stage._write(self.learner, self.objects, self.map_name, self.learnt, self.session,
+                          version)

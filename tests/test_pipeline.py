@@ -10,9 +10,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 
 import pytest
-from pymongo import MongoClient
+from pymongo import MongoClient, monitoring
 from pymongo.errors import ConfigurationError
 
 from percept_memory.demo import kitchen_week
@@ -140,6 +141,58 @@ def test_the_pipeline_thread_gives_way_to_ingest_then_consolidates_everything_on
     clusters = sum(len(s.clusters) for s in week.scenes[:5])
     assert empty.db[EVENTS].count_documents({"cluster_id": {"$ne": None}}) == clusters
     assert service.pipeline.run_once() == 0
+
+
+class Commands(monitoring.CommandListener):
+    """The commands a client sends while `on`, as (thread, name, collection): pymongo's
+    synchronous API sends a command from the thread that asked for it."""
+
+    def __init__(self):
+        self.seen, self.on = Counter(), False
+
+    def started(self, event):
+        if self.on:
+            target = event.command.get(event.command_name)
+            self.seen[threading.current_thread().name, event.command_name,
+                      target if isinstance(target, str) else ""] += 1
+
+    def succeeded(self, event):
+        pass
+
+    def failed(self, event):
+        pass
+
+
+def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own(
+        mongo_uri, empty, week, monkeypatch):
+    """The server's path: its consolidator thread works, the caller waits. The caller asks
+    MongoDB once and is then told by the thread's commit (with the poll for other processes'
+    work made 5 s, a missed commit would show as a second ask); the thread takes the lease in
+    one command and gives it back in the batch's own transaction."""
+    monkeypatch.setattr("percept_memory.memory.pipeline.WAIT_POLL_S", 5.0)
+    commands = Commands()
+    client = MongoClient(mongo_uri, event_listeners=[commands], **CLIENT_OPTIONS)
+    store = MemoryStore(client, empty.db.name, gridfs_threshold=empty.gridfs_threshold)
+    service = IngestService(store)
+    service.ingest_batch(week.scenes[:3], wait=60)  # the map's first batches read more
+    service.pipeline.start()
+    try:
+        commands.on = True
+        for scene in week.scenes[3:8]:
+            started = time.monotonic()
+            assert service.ingest(scene, wait=60).created
+            assert time.monotonic() - started < 5.0
+        commands.on = False
+    finally:
+        service.pipeline.stop()
+        client.close()
+    caller = threading.current_thread().name
+    assert {(name, target): n for (thread, name, target), n in commands.seen.items()
+            if thread == caller and target == OUTBOX} == {("distinct", OUTBOX): 5}  # once
+    lease = Counter({(name, target): n for (thread, name, target), n in commands.seen.items()
+                     if thread == "pmem-pipeline" and target == MAPS and name != "find"})
+    assert lease == {("findAndModify", MAPS): 5, ("update", MAPS): 5}  # taken; fence and end
+    assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
 
 
 def test_scenes_are_consolidated_in_time_order_whatever_order_they_were_stored_in(empty, week):

@@ -251,9 +251,9 @@ class Pipeline:
 
     def run_forever(self) -> None:
         """Work whenever there is work, until stop(); a database outage is waited out. A pass
-        takes what was due when it looked: after one that did work, the next looks once
-        ingest has been quiet for QUIET_S (or at once when this process stores a scene), not
-        while whoever waited for that work reads its answer."""
+        takes what was due when it looked: after one that did work, the next looks after
+        QUIET_S (at once when this process stores a scene), not while whoever waited for that
+        work reads its answer."""
         while not self._stop.is_set():
             try:
                 done = self.run_once()

@@ -589,10 +589,10 @@ def quantised(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each row (along the last axis) as int8 steps of a scale, its largest |value| / 127, so
     each value is within half a step of scale * steps (a row of zeros: steps 0, scale 0); and
     the row's scale and norm (float64). Divided in float64: no step lands past 127."""
-    wide = values.astype(np.float64)
-    scales = np.abs(wide).max(axis=-1) / STEPS
-    steps = np.rint(wide / np.where(scales > 0, scales, 1)[..., None]).astype(np.int8)
-    return steps, np.stack([scales, np.linalg.norm(wide, axis=-1)], axis=-1)
+    scales = np.abs(values).max(axis=-1).astype(np.float64) / STEPS
+    divided = values / np.where(scales > 0, scales, 1)[..., None]
+    norms = np.sqrt(np.einsum("...i,...i->...", values, values, dtype=np.float64))
+    return np.rint(divided, out=divided).astype(np.int8), np.stack([scales, norms], axis=-1)
 
 
 def _file_name(descriptor: str) -> str:

@@ -257,6 +257,7 @@ class Vectors:
         for start in range(0, len(self.matrix), QUANTISE_BLOCK):
             block = slice(start, start + QUANTISE_BLOCK)
             self.steps[block], self.sizes[block] = quantised(self.matrix[block])
+        self.reach = float(self.sizes[:, 1].max(initial=0))  # the longest vector's norm
 
     @property
     def ndim(self) -> int:
@@ -273,6 +274,7 @@ class Vectors:
             self.present[held:] = False
         self.matrix[rows] = stack
         self.steps[rows], self.sizes[rows] = quantised(stack)
+        self.reach = max(self.reach, float(self.sizes[rows, 1].max()))
         self.present[rows] = True
         self.index.add(rows.astype(np.uint64), stack)
 
@@ -330,9 +332,7 @@ class Vectors:
         gathered by np.take: fancy indexing copies rows of int8 a value at a time, 2x slower."""
         query = vector.astype(np.float64)
         length = float(np.linalg.norm(query))
-        sizes = np.take(self.sizes, rows, axis=0)
-        scales, norms = sizes[:, 0], sizes[:, 1]
-        if not dots_exact(self.ndim) or not length * norms.max() < FLOAT32_MAX / 2:
+        if not dots_exact(self.ndim) or not length * self.reach < FLOAT32_MAX / 2:
             return None
         steps, (scale, _) = quantised(query)
         packed = numkong.dots_pack(steps[None])
@@ -341,6 +341,8 @@ class Vectors:
             block = np.take(self.steps, rows[start:start + SCORE_BLOCK], axis=0)
             found = numkong.dots_packed(block, packed)  # int32, (rows, 1)
             scores[start:start + len(block)] = np.asarray(found)[:, 0]
+        sizes = np.take(self.sizes, rows, axis=0)
+        scales, norms = sizes[:, 0], sizes[:, 1]
         scores *= scales * scale
         missed = float(np.linalg.norm(query - scale * steps))
         grown = 1 + SLACK  # each term grown, not their sum: a pass over the rows less

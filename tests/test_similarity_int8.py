@@ -100,16 +100,16 @@ def test_the_int8_scan_finds_what_the_float32_scan_finds(index, monkeypatch):
 
 
 def hard_rows(kind: str, rng: np.random.Generator) -> np.ndarray:
-    """2,000 rows of 48 floats that are hard for int8 in one way each."""
-    normal = rng.normal(size=(2000, 48)).astype(np.float32)
+    """5,000 rows of 48 floats that are hard for int8 in one way each."""
+    normal = rng.normal(size=(5000, 48)).astype(np.float32)
     if kind == "random":
         return normal
     if kind == "near ties":  # bunches closer than int8's steps, and exact duplicates
-        rows = crowded(rng, 2000, 48)
+        rows = crowded(rng, 5000, 48)
         rows[1000:1400] = rows[:400]
         return rows
     if kind == "norms far apart":  # lengths from 1e-6 to 1e6
-        return (normal * 10.0 ** rng.uniform(-6, 6, (2000, 1))).astype(np.float32)
+        return (normal * 10.0 ** rng.uniform(-6, 6, (5000, 1))).astype(np.float32)
     if kind == "a zero row":
         normal[7] = 0
         return normal
@@ -125,6 +125,7 @@ KINDS = ["random", "near ties", "norms far apart", "a zero row", "a huge value",
 
 @pytest.mark.parametrize("kind", KINDS)
 def test_the_int8_scan_finds_the_float32_scans_rows_on_hard_data(kind, monkeypatch):
+    monkeypatch.setattr(similarity, "SCAN_THREADS", 3)  # up to 3 blocks scanned at once
     rng = np.random.default_rng(KINDS.index(kind))
     stack = hard_rows(kind, rng)
     vectors = Vectors(48)

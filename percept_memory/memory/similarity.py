@@ -245,8 +245,9 @@ class Vectors:
     many rows; as a matrix by row for exact scores of a few (a filter's rows, the candidates):
     gathering and multiplying 36,000 rows of a million takes a few milliseconds, fetching as
     many neighbours from the graph ten times that; and that matrix in int8 (a scale per row),
-    for a filter's rows: scanning 73,000 rows is fetching them from memory, and int8 is a
-    quarter of float32's bytes. It is derived from the float32 matrix, not saved."""
+    for a filter's rows: gathering and multiplying 73,000 rows is the exact search's cost, and
+    int8 rows are a quarter of the bytes with integer products. It is derived from the float32
+    matrix, not saved."""
 
     def __init__(self, ndim: int, index: Index | None = None, matrix: np.ndarray | None = None,
                  present: np.ndarray | None = None):

@@ -384,8 +384,8 @@ def through_mongodb(count: int, folder: Path, keep: str | None, queries: int = 2
                 round(build_s, 1),
             "index_build_clusters_per_s": round(count / build_s) if built else None,
             "index_load_s": round(load_s, 2), "index_size_mb": round(size / 2**20, 1),
-            "float16_copies_mb": round(sum(v.half.nbytes for v in loaded.vectors.values())
-                                       / 2**20, 1),  # in memory only, beside the files' size
+            "int8_copies_mb": round(sum(  # in memory only, beside the files' size
+                v.steps.nbytes + v.sizes.nbytes for v in loaded.vectors.values()) / 2**20, 1),
             "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
                                          / 1024),
             "per_million_linear_extrapolation": None if count >= 1_000_000 or not built else {

@@ -191,23 +191,29 @@ def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_pa
 
 
 def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed():
-    """The rows sorted by time are merged with those added since, not sorted again."""
+    """The rows and their columns sorted by time are merged with those added since, not
+    sorted again."""
     rng = np.random.default_rng(0)
     rows = similarity.Rows()
     times = rng.integers(0, 100, 3000)  # out of order, many alike: window ends are inclusive
+    robots, regions, maps = rng.choice(["r", "s"], 3000), rng.choice(["a", "b"], 3000), \
+        rng.choice(["m", "n", None], 3000)
     for first in range(0, len(times), 700):  # added in batches, filtered between them
         for row in range(first, min(first + 700, len(times))):
             rows.add(ObjectId(), int(times[row]),
-                     {"robot": "r", "region": "ab"[row % 2], "map": None})
+                     {"robot": robots[row], "region": regions[row], "map": maps[row]})
         rows.remove(int(rng.integers(len(rows))))
         live = rows.columns["live"][:len(rows)]
         assert rows.live_count() == live.sum() < len(rows)
         for after, before in [(10, 20), (None, 50), (50, None), (30, 30), (None, None)]:
-            expected = [row for row in range(len(rows)) if live[row] and row % 2 == 0
-                        and (after is None or times[row] >= after)
-                        and (before is None or times[row] <= before)]
-            found = rows.passing(RowFilter(region=["a"], after=after, before=before))
-            assert sorted(found.tolist()) == expected
+            for where in ({"region": ["a"]}, {"robot": ["s"], "map": ["m"]}):
+                expected = [row for row in range(len(rows)) if live[row]
+                            and all({"robot": robots, "region": regions, "map": maps}[key][row]
+                                    in wanted for key, wanted in where.items())
+                            and (after is None or times[row] >= after)
+                            and (before is None or times[row] <= before)]
+                found = rows.passing(RowFilter(**where, after=after, before=before))
+                assert sorted(found.tolist()) == expected
 
 
 @pytest.mark.parametrize("exact_rows", [similarity.EXACT_ROWS, 0])

@@ -12,9 +12,10 @@ row per cluster) and a filter selects rows (a time window by the rows sorted by 
 rest by masks over the window's rows). When at most EXACT_ROWS pass, those
 rows are searched exactly, from the vectors kept a second time as a matrix by row (memory
 for speed: a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the
-graph's neighbours are over-fetched and kept when they pass. The exact search scans a float16
-copy of the matrix (derived when loaded, never saved) and scores again in float32 only the rows
-its rounding leaves in doubt: its results are the float32 scan's, at half the bytes fetched.
+graph's neighbours are over-fetched and kept when they pass. The exact search scans an int8
+copy of the matrix (a scale per row; derived when loaded, never saved) and scores again in
+float32 only the rows its bound on the rounding leaves in doubt: its results are the float32
+scan's, at a quarter of the bytes fetched.
 
 Kept current from a watermark, not a pipeline stage: the folder is local to each process
 (`pmem serve`, `pmem query`) while MongoDB may be shared, so each process's index catches up
@@ -33,10 +34,12 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import os
 import re
 import threading
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -68,10 +71,15 @@ PROGRESS_EVERY = 100  # chunks: a build from a large database logs how far it is
 # query of 150); so exact as long as it stays cheap: its cost is the rows', ~0.03 us each.
 EXACT_ROWS = 100_000
 SCORE_BLOCK = 2048  # rows gathered and scored at a time (~1 MB of 144 floats: in the cache)
-HALF_MAX = float(np.finfo(np.float16).max)  # past it a descriptor is scanned in float32
-HALF_ROUNDING = 2.0**-11  # float16's relative rounding error (to nearest), normal numbers
-HALF_SUBNORMAL = 2.0**-25  # its absolute rounding error below them
-SUM_ROUNDING = float(np.finfo(np.float32).eps)  # per term, bounds a float32 sum's own error
+SCAN_THREADS = os.cpu_count() or 1  # a filter's rows are scanned in this many parts at once
+QUANTISE_BLOCK = 65_536  # rows made int8 at a time when loaded (each a float64 row meanwhile)
+STEPS = 127  # int8 steps each side of zero: a row's largest |value| is 127 of its scale
+FLOAT32_EPS = float(np.finfo(np.float32).eps)  # per term, bounds a float32 sum's own error
+FLOAT32_TINY = float(np.finfo(np.float32).smallest_subnormal)  # bounds a product's underflow
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+# The bound's share for float64's own rounding (of the int8 scores, the bounds, their sums):
+# ~2^-52 of |q| |x|, where a row's bound is at least ndim * FLOAT32_EPS (2^-23) of it.
+SLACK = 2.0**-20
 SAVE_EVERY = 1000  # rows added or removed since the files were written
 META = ("time", "robot", "region", "map")  # per row; robot, region and map as codes
 COLUMNS = {"live": bool, "time": np.int64, "robot": np.int32, "region": np.int32,
@@ -133,7 +141,7 @@ class Rows:
                         for key, dtype in COLUMNS.items()}
         self._live = int(self.columns["live"].sum())
         self._by_time = np.zeros(0, np.int64)  # rows sorted by time (see passing)
-        self._times = np.zeros(0, np.int64)  # their times
+        self._sorted = {key: np.zeros(0, COLUMNS[key]) for key in META}  # their columns
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -173,38 +181,50 @@ class Rows:
 
     def passing(self, f: RowFilter) -> np.ndarray:
         """The rows that pass the filter (and are still in the database), in no set order.
-        With a time window only its rows are looked at, found in the rows sorted by time: a
-        day's filter over a million rows costs as that day's rows do, not as all of them (and
-        they stay in time order: sorting them by row would cost a tenth of scanning them)."""
+        With a time window only its rows are looked at, a slice of the columns kept sorted by
+        time: a day's filter over a million rows costs as that day's rows do, not as all of
+        them, without gathering their columns from rows all over (and they stay in time order:
+        sorting them by row would cost a tenth of scanning them)."""
         n = len(self)
         if f.after is None and f.before is None:
-            rows = None
-            keep = self.columns["live"][:n].copy()
-        else:
-            order, times = self._time_order()
-            first = 0 if f.after is None else np.searchsorted(times, f.after, "left")
-            end = n if f.before is None else np.searchsorted(times, f.before, "right")
-            rows = order[first:end]
-            keep = self.columns["live"][rows]
+            live = self.columns["live"][:n]
+            return np.flatnonzero(live & self._matching(f, self.columns, slice(0, n)))
+        order, columns = self._time_order()
+        first = 0 if f.after is None else np.searchsorted(columns["time"], f.after, "left")
+        end = n if f.before is None else np.searchsorted(columns["time"], f.before, "right")
+        rows = order[first:end]
+        if f.robot or f.region or f.map:
+            rows = rows[self._matching(f, columns, slice(first, end))]
+        return rows[self.columns["live"][rows]]
+
+    def _matching(self, f: RowFilter, columns: Mapping[str, np.ndarray], part: slice
+                  ) -> np.ndarray:
+        """Which of the columns' rows in `part` have one of the filter's robots, regions and
+        maps (all, when it names none)."""
+        keep = np.ones(part.stop - part.start, bool)
         for key in META[1:]:
             wanted = getattr(f, key)
             if wanted:
-                chosen = np.zeros(len(self.names[key]), bool)  # by code: a gather, not a search
-                chosen[[self._code_of[key][v] for v in wanted if v in self._code_of[key]]] = True
-                keep &= chosen[self.columns[key][:n] if rows is None else self.columns[key][rows]]
-        return np.flatnonzero(keep) if rows is None else rows[keep]
+                codes = {self._code_of[key][v] for v in wanted if v in self._code_of[key]}
+                matched = np.zeros(len(keep), bool)
+                for code in codes:  # a comparison per name: faster than gathering by code
+                    matched |= columns[key][part] == code
+                keep &= matched
+        return keep
 
-    def _time_order(self) -> tuple[np.ndarray, np.ndarray]:
-        """The rows sorted by time, and their times: the rows added since the last call are
-        merged in (sorting only them), so new clusters cost a copy, not a sort of all."""
+    def _time_order(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The rows sorted by time, and their time, robot, region and map in that order (they
+        never change once stored): the rows added since the last call are merged in (sorting
+        only them), so new clusters cost a copy, not a sort of all."""
         done, n = len(self._by_time), len(self)
         if done < n:
-            times = self.columns["time"][done:n]
-            order = np.argsort(times, kind="stable")
-            at = np.searchsorted(self._times, times[order], "right")
+            order = np.argsort(self.columns["time"][done:n], kind="stable")
+            at = np.searchsorted(self._sorted["time"], self.columns["time"][done:n][order],
+                                 "right")
             self._by_time = np.insert(self._by_time, at, order + done)
-            self._times = np.insert(self._times, at, times[order])
-        return self._by_time, self._times
+            for key, column in self._sorted.items():
+                self._sorted[key] = np.insert(column, at, self.columns[key][done:n][order])
+        return self._by_time, self._sorted
 
     def save(self, folder: Path) -> None:
         """Write the rows in one file (ids, columns and the names the codes stand for)."""
@@ -224,9 +244,10 @@ class Vectors:
     """One descriptor's vectors, three times: in an HNSW graph (usearch) for the nearest among
     many rows; as a matrix by row for exact scores of a few (a filter's rows, the candidates):
     gathering and multiplying 36,000 rows of a million takes a few milliseconds, fetching as
-    many neighbours from the graph ten times that; and that matrix in float16, for a filter's
-    rows: scanning 73,000 rows is fetching them from memory (6.8 of 7.2 ms in float32), and
-    float16 halves the bytes. It is derived from the float32 matrix, not saved."""
+    many neighbours from the graph ten times that; and that matrix in int8 (a scale per row),
+    for a filter's rows: gathering and multiplying 73,000 rows is the exact search's cost, and
+    int8 rows are a quarter of the bytes with integer products. It is derived from the float32
+    matrix, not saved."""
 
     def __init__(self, ndim: int, index: Index | None = None, matrix: np.ndarray | None = None,
                  present: np.ndarray | None = None):
@@ -235,9 +256,12 @@ class Vectors:
         self.index.expansion_search = EXPANSION_SEARCH
         self.matrix = np.zeros((0, ndim), np.float32) if matrix is None else matrix
         self.present = np.zeros(0, bool) if present is None else present
-        self.half = in_half(self.matrix)
-        self.reach = 0.0  # the longest vector's norm (inf: one does not fit float16)
-        self._reach(self.matrix)
+        self.steps = np.empty(self.matrix.shape, np.int8)  # a row ~ its scale * its steps
+        self.sizes = np.empty((len(self.matrix), 2))  # per row: its scale, its norm
+        for start in range(0, len(self.matrix), QUANTISE_BLOCK):
+            block = slice(start, start + QUANTISE_BLOCK)
+            self.steps[block], self.sizes[block] = quantised(self.matrix[block])
+        self.reach = float(self.sizes[:, 1].max(initial=0))  # the longest vector's norm
 
     @property
     def ndim(self) -> int:
@@ -248,20 +272,15 @@ class Vectors:
         if rows.max() >= held:
             size = max(16, 2 * held, int(rows.max()) + 1)
             self.matrix = np.resize(self.matrix, (size, self.ndim))
-            self.half = np.resize(self.half, (size, self.ndim))
+            self.steps = np.resize(self.steps, (size, self.ndim))
+            self.sizes = np.resize(self.sizes, (size, 2))
             self.present = np.resize(self.present, size)
             self.present[held:] = False
         self.matrix[rows] = stack
-        self.half[rows] = in_half(stack)
-        self._reach(stack)
+        self.steps[rows], self.sizes[rows] = quantised(stack)
+        self.reach = max(self.reach, float(self.sizes[rows, 1].max()))
         self.present[rows] = True
         self.index.add(rows.astype(np.uint64), stack)
-
-    def _reach(self, stack: np.ndarray) -> None:
-        if len(stack):
-            fits = max(float(stack.max()), -float(stack.min())) <= HALF_MAX
-            longest = np.sqrt(np.einsum("ij,ij->i", stack, stack, dtype=np.float64).max())
-            self.reach = max(self.reach, longest if fits else np.inf)
 
     def remove(self, row: int) -> None:
         if self.has(np.array([row]))[0]:
@@ -269,7 +288,9 @@ class Vectors:
             self.index.remove(row)
 
     def has(self, rows: np.ndarray) -> np.ndarray:
-        """Which of the rows have this descriptor."""
+        """Which of the rows have this descriptor (none past the last row it was given)."""
+        if len(rows) and rows.max() < len(self.present):
+            return self.present[rows]  # one gather: a third of the masked one's time below
         inside = rows < len(self.present)
         out = np.zeros(len(rows), bool)
         out[inside] = self.present[rows[inside]]
@@ -289,16 +310,14 @@ class Vectors:
 
     def best(self, rows: np.ndarray, vector: np.ndarray, count: int) -> np.ndarray:
         """The `count` rows (of these, which have this descriptor) that score highest in
-        float32, in no order; of rows scoring as the count-th does, the first added. The float16
-        copy is scanned; a row whose float16 score is within twice the rounding's bound of the
-        count-th best may be among them, and only those rows are scored again in float32: the
-        rows found are the float32 scan's, whatever order the rows come in."""
-        if len(rows) > count:
-            query = in_half(vector)
-            bound = self._rounding_bound(vector, query)
-            if np.isfinite(bound):
-                rough = self._half_scores(rows, query)
-                rows = rows[rough >= _kth_largest(rough, count) - 2 * bound]
+        float32, in no order; of rows scoring as the count-th does, the first added. The int8
+        copy is scanned; a row whose int8 score could, within its bound, reach the count-th
+        best's lowest possible score may be among them, and only those rows are scored again in
+        float32: the rows found are the float32 scan's, whatever order the rows come in."""
+        rough = self._rough_scores(rows, vector) if len(rows) > count else None
+        if rough is not None:
+            scores, bounds = rough
+            rows = rows[scores + bounds >= _kth_largest(scores - bounds, count)]
         if len(rows) <= count:
             return rows
         scores = self.scores(rows, vector)
@@ -306,27 +325,43 @@ class Vectors:
         above = rows[scores > kth]
         return np.concatenate([above, np.sort(rows[scores == kth])[:count - len(above)]])
 
-    def _half_scores(self, rows: np.ndarray, query: np.ndarray) -> np.ndarray:
-        """The rows' float16 inner products with the float16 query, summed in float32 by
-        numkong (numpy converts float16 a number at a time: slower than fetching float32)."""
-        out = np.empty(len(rows))
-        for start in range(0, len(rows), SCORE_BLOCK):
-            block = rows[start:start + SCORE_BLOCK]
-            numkong.dot(self.half[block], query, out=out[start:start + len(block)])
-        return out
+    def _rough_scores(self, rows: np.ndarray, vector: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rows' int8 scores with the vector quantised alike, and how far each may be from
+        its float32 score; None when that cannot be bounded (numkong's int8 sums not exact
+        here, or float32 sums that may overflow: then the scan stays float32).
+        With x ~ s x8 (each value within s/2) and q ~ t q8, the int8 score is s t (q8.x8),
+        exact in int32, and |q.x - s t q8.x8| <= |q|_1 s/2 + |q - t q8| (|x| + sqrt(ndim)
+        s/2); float32's own sum is within ndim eps |q| |x| (+ underflow) of q.x. Rows are
+        gathered by np.take: fancy indexing copies rows of int8 a value at a time, 2x slower."""
+        query = vector.astype(np.float64)
+        length = float(np.linalg.norm(query))
+        if not dots_exact(self.ndim) or not length * self.reach < FLOAT32_MAX / 2:
+            return None
+        steps, (scale, _) = quantised(query)
+        packed = numkong.dots_pack(steps[None])
+        scores = np.empty(len(rows))
 
-    def _rounding_bound(self, vector: np.ndarray, query: np.ndarray) -> float:
-        """How far any row's float16 score may be from its float32 score: the vector's and the
-        row's rounding to float16 (|q.x - q16.x16| <= |q|.|x - x16| + |q - q16|.|x16|) and
-        both sums' own rounding. Infinite when the vector or a row does not fit float16, or
-        when numkong does not sum in float32 here."""
-        if not sums_in_float32(self.ndim):
-            return np.inf
-        length = float(np.linalg.norm(vector.astype(np.float64)))
-        row_error = HALF_ROUNDING * self.reach + HALF_SUBNORMAL * np.sqrt(self.ndim)
-        query_error = float(np.linalg.norm(vector.astype(np.float64) - query))
-        sums = 2 * self.ndim * SUM_ROUNDING * length * (self.reach + row_error)
-        return length * row_error + query_error * (self.reach + row_error) + sums
+        def scan(part: range) -> None:
+            for start in part:
+                block = np.take(self.steps, rows[start:start + SCORE_BLOCK], axis=0)
+                found = numkong.dots_packed(block, packed)  # int32, (rows, 1)
+                scores[start:start + len(block)] = np.asarray(found)[:, 0]
+
+        starts = range(0, len(rows), SCORE_BLOCK)
+        share = max(1, min(SCAN_THREADS, len(starts)))  # every share-th block to a thread
+        helped = [scanners().submit(scan, starts[i::share]) for i in range(1, share)]
+        scan(starts[::share])
+        for part in helped:
+            part.result()
+        sizes = np.take(self.sizes, rows, axis=0)
+        scales, norms = sizes[:, 0], sizes[:, 1]
+        scores *= scales * scale
+        missed = float(np.linalg.norm(query - scale * steps))
+        grown = 1 + SLACK  # each term grown, not their sum: a pass over the rows less
+        per_scale = (np.abs(query).sum() / 2 + missed * np.sqrt(self.ndim) / 2) * grown
+        per_norm = (missed + self.ndim * FLOAT32_EPS * length) * grown
+        return scores, per_scale * scales + per_norm * norms + self.ndim * FLOAT32_TINY * grown
 
     def nearest(self, vector: np.ndarray, count: int) -> np.ndarray:
         return self.index.search(vector, min(count, len(self.index))).keys.astype(np.int64)
@@ -568,24 +603,36 @@ def _kth_largest(values: np.ndarray, k: int) -> float:
 
 
 @functools.cache
-def sums_in_float32(ndim: int) -> bool:
-    """Whether numkong's float16 inner products of this length are summed as precisely as
-    float32 sums are (checked on random rows, not assumed: a kernel summing in float16, as on
-    some CPUs it might, would break Vectors._rounding_bound; then the scan stays float32)."""
-    rng = np.random.default_rng(0)
-    rows = rng.normal(size=(64, ndim)).astype(np.float16)
-    query = rng.normal(size=ndim).astype(np.float16)
-    wide, wide_query = rows.astype(np.float64), query.astype(np.float64)
-    found = np.empty(len(rows))
-    numkong.dot(rows, query, out=found)
-    allowed = ndim * SUM_ROUNDING * (np.abs(wide) @ np.abs(wide_query))
-    return bool(np.all(np.abs(found - wide @ wide_query) <= allowed))
+def scanners() -> ThreadPoolExecutor:
+    """The threads that scan parts of a filter's rows beside the asking one: np.take and
+    numkong let go of the GIL, so two cores scan 73,000 rows in 2.0 ms where one takes 3.0
+    (fancy indexing holds it: threads were slower with it)."""
+    return ThreadPoolExecutor(SCAN_THREADS - 1, thread_name_prefix="similarity-scan")
 
 
-def in_half(values: np.ndarray) -> np.ndarray:
-    """The values in float16: inf where they do not fit (Vectors.reach then says so)."""
-    with np.errstate(over="ignore"):
-        return values.astype(np.float16)
+os.register_at_fork(after_in_child=scanners.cache_clear)  # a fork has none of the threads
+
+
+@functools.cache
+def dots_exact(ndim: int) -> bool:
+    """Whether numkong's int8 inner products of this length are exact (checked, not assumed:
+    a kernel summing in 16 bits, or in int32 past 133,000 dimensions, would break
+    Vectors._rough_scores's bound; then the scan stays float32)."""
+    rows = np.random.default_rng(0).integers(-STEPS, STEPS + 1, (64, ndim)).astype(np.int8)
+    rows[:2] = [[STEPS], [-STEPS]]  # with rows[0] as the query: the largest sums either way
+    return all(np.array_equal(np.asarray(numkong.dots_packed(
+        rows, numkong.dots_pack(query[None])))[:, 0], rows.astype(np.int64) @ query)
+        for query in (rows[0], rows[2]))
+
+
+def quantised(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row (along the last axis) as int8 steps of a scale, its largest |value| / 127, so
+    each value is within half a step of scale * steps (a row of zeros: steps 0, scale 0); and
+    the row's scale and norm (float64). Divided in float64: no step lands past 127."""
+    scales = np.abs(values).max(axis=-1).astype(np.float64) / STEPS
+    divided = values / np.where(scales > 0, scales, 1)[..., None]
+    norms = np.sqrt(np.einsum("...i,...i->...", values, values, dtype=np.float64))
+    return np.rint(divided, out=divided).astype(np.int8), np.stack([scales, norms], axis=-1)
 
 
 def _file_name(descriptor: str) -> str:

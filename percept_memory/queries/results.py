@@ -4,7 +4,7 @@ and the CLI give the same shapes. Times are int64 nanoseconds since the epoch, U
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Self
 
 from pydantic import BaseModel
 
@@ -38,13 +38,14 @@ class ClusterHit(BaseModel):
     distance: float | None = None  # with near
 
     @classmethod
-    def of(cls, doc: dict) -> ClusterHit:
+    def of(cls, doc: dict, **more) -> Self:
+        """The hit of a cluster's document (HIT_FIELDS), with a subclass's `more` fields."""
         search = doc["search"]
         return cls(id=doc["_id"], scene_id=doc.get("scene_id"), object_id=doc.get("object_id"),
                    time=search["time"], robot=search["robot"], region=search.get("region"),
                    position=search.get("position"), labels=search.get("labels", []),
                    text=search.get("text", []), types=search.get("types", []),
-                   score=doc.get("score"), distance=doc.get("distance"))
+                   score=doc.get("score"), distance=doc.get("distance"), **more)
 
 
 class ClusterPage(BaseModel):

@@ -107,8 +107,8 @@ class Similarity:
         matches = self.index.search(vectors, query.k, where, exclude)
         docs = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
             {"_id": {"$in": [m.cluster_id for m in matches]}}, HIT_FIELDS)}
-        items = [SimilarHit(**ClusterHit.of(docs[m.cluster_id]).model_dump(),
-                            similarity=m.similarity, descriptors=m.descriptors)
+        items = [SimilarHit.of(docs[m.cluster_id], similarity=m.similarity,
+                               descriptors=m.descriptors)
                  for m in matches if m.cluster_id in docs]
         return SimilarPage(start=str(start), descriptors=sorted(vectors), items=items)
 

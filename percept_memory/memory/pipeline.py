@@ -351,10 +351,10 @@ class Pipeline:
         last = entries[-1]
 
         def work(session):
-            lease = {"lease": None} if release else {"lease.until": utc_now() + self.lease}
+            ending = {"lease": None} if release else {"lease.until": utc_now() + self.lease}
             fenced = self.maps.update_one(
                 {"_id": map_name, "lease.token": token},
-                {"$set": {**lease, "consolidated": [last["time"], last["_id"]],
+                {"$set": {**ending, "consolidated": [last["time"], last["_id"]],
                           "updated": utc_now()}},
                 session=session)
             if not fenced.matched_count:
@@ -395,10 +395,10 @@ class Pipeline:
         `session`; None when another holds it. The session of an expired lease is killed
         first (a read is not held up by what a transaction left open; the write would be)."""
         now = utc_now()
-        lease = {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
-                                    "until": now + self.lease, "session": session.session_id}}}
+        ours = {"$set": {"lease": {"owner": self.owner, "token": ObjectId(),
+                                   "until": now + self.lease, "session": session.session_id}}}
         try:  # a free lease (the usual case: one round trip): no transaction of it is open
-            return self.maps.find_one_and_update({"_id": map_name, "lease": None}, lease,
+            return self.maps.find_one_and_update({"_id": map_name, "lease": None}, ours,
                                                  upsert=True,
                                                  return_document=ReturnDocument.AFTER)
         except DuplicateKeyError:  # held, maybe expired
@@ -410,7 +410,7 @@ class Pipeline:
         if expired["lease"].get("session"):
             self._kill(expired["lease"]["session"])
         return self.maps.find_one_and_update({"_id": map_name, "lease.until": {"$lt": now}},
-                                             lease, return_document=ReturnDocument.AFTER)
+                                             ours, return_document=ReturnDocument.AFTER)
 
     def _kill(self, session_id: dict) -> None:
         """Abort whatever the session of a lease that ran out left open (its consolidator

@@ -205,19 +205,19 @@ class Consolidation:
                 seen_as[cluster.id] = object_id
         later.add(events, links)
         asked = {c.id: others for c in kept if (others := same_as(c.annotations))}
-        if asked or any(d.lookalikes for d in decisions):
-            later.write()  # what follows reads the events and moves the links
+        if asked:
+            later.write()  # the earlier clusters' links are read
         merged: dict = {}  # object -> the object it was merged into
-        twins, taken_looks = self._remembered_twice(decisions, clusters, session)
+        twins, taken_looks = self._remembered_twice(decisions, clusters, later, session)
         for keep, twin in twins:
-            self._merge(keep, twin, scene, known_objects, session)
+            self._merge(keep, twin, scene, known_objects, later, session)
             merged[twin] = keep
         for other, look in taken_looks:
-            self._forget_look(other, look, known_objects, session)
+            self._forget_look(other, look, known_objects, later, session)
         for keep, twin in self._asked_to_merge(asked, seen_as, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
-            if keep != twin and not self._split_between(keep, twin, session):
-                self._merge(keep, twin, scene, known_objects, session)
+            if keep != twin and not self._split_between(keep, twin, later, session):
+                self._merge(keep, twin, scene, known_objects, later, session)
                 merged[twin] = keep
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
@@ -242,13 +242,12 @@ class Consolidation:
                      and scene.timestamp - known.docs[m]["last_seen"] >= RECALL_AFTER_NS]
             if object_id not in known.docs or not mates:
                 continue
-            later.write()  # the merge reads the events and moves the links
             started = known.docs[object_id]["first_seen"]
             for mate in mates:
-                if not (self._seen_together(object_id, mate, session)
-                        or self._split_between(object_id, mate, session)):
+                if not (self._seen_together(object_id, mate, later)
+                        or self._split_between(object_id, mate, later, session)):
                     likeness = self._learning.likeness(object_id, mate)
-                    self._merge(object_id, mate, scene, known, session)
+                    self._merge(object_id, mate, scene, known, later, session)
                     merged[mate] = object_id
                     self._appeared_as_moved(object_id, started, likeness, session)
         if merged:
@@ -306,9 +305,12 @@ class Consolidation:
         return [split for doc in found for split in splits(
             decode(a) for a in doc["annotations"] if "author" in a)]
 
-    def _split_between(self, a, b, session) -> bool:
+    def _split_between(self, a, b, later: Later, session) -> bool:
         """Whether a person split observations of object `a` from observations of `b` (then
         no merge makes them one object again)."""
+        if not self._any_split:
+            return False
+        later.write()  # the links of this batch's earlier scenes are read
         theirs: dict = {a: set(), b: set()}
         for doc in self.store.clusters.find({"object_id": {"$in": [a, b]}}, {"object_id": 1},
                                             session=session):
@@ -327,7 +329,7 @@ class Consolidation:
         return {doc["_id"]: doc.get("object_id") for doc in self.store.clusters.find(
             {"_id": {"$in": cluster_ids}, **earlier}, {"object_id": 1}, session=session)}
 
-    def _remembered_twice(self, decisions: list[Decision], clusters: dict,
+    def _remembered_twice(self, decisions: list[Decision], clusters: dict, later: Later,
                           session) -> list:
         """(object, its twin): an object seen now that looks beyond doubt like another known
         object not seen now, the two never seen together in one scene: one object
@@ -341,15 +343,16 @@ class Consolidation:
                 continue
             for other, look in decision.lookalikes.items():
                 if other not in taken \
-                        and not self._seen_together(decision.object, other, session) \
-                        and not self._split_between(decision.object, other, session):
+                        and not self._seen_together(decision.object, other, later) \
+                        and not self._split_between(decision.object, other, later, session):
                     pairs.append((decision.object, other))
                     taken.add(other)
                 else:
                     looks.append((other, look))
         return pairs, looks
 
-    def _forget_look(self, object_id, look, known: KnownObjects, session) -> None:
+    def _forget_look(self, object_id, look, known: KnownObjects, later: Later,
+                     session) -> None:
         """A look of an object that another object, seen apart from it, now shows beyond
         doubt, and that it does not show itself now (not its last): it came by a wrong link
         and is forgotten, so it draws no more of the other object's observations. (Identical
@@ -358,17 +361,19 @@ class Consolidation:
         if doc is None or look == doc["last_cluster"] or look not in _views(doc):
             return
         fields = _looks_fields([kept for kept in _looks(doc) if kept[0] != look])
+        later.write()  # (its pending looks, written after, would bring the look back)
         self.objects.update_one({"_id": object_id}, {"$set": fields}, session=session)
         known.write(object_id, fields)
 
-    def _seen_together(self, a, b, session) -> bool:
-        scenes = [set(self.events.distinct("scene_id", {"object_id": o, "cluster_id": {
-            "$ne": None}}, session=session)) for o in (a, b)]
-        return bool(scenes[0] & scenes[1])
+    @staticmethod
+    def _seen_together(a, b, later: Later) -> bool:
+        return not later.seen_in(a).isdisjoint(later.seen_in(b))
 
-    def _merge(self, keep, twin, scene: Scene, known: KnownObjects, session) -> None:
+    def _merge(self, keep, twin, scene: Scene, known: KnownObjects, later: Later,
+               session) -> None:
         """One object remembered as two: `twin`'s looks, observations, names and history
         become `keep`'s, and `twin` is no more."""
+        later.write()  # the merge reads the objects and moves the events and links
         kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
         weights = stored_weights(kept) + stored_weights(gone)
         mine = set(_views(kept))
@@ -383,6 +388,7 @@ class Consolidation:
                                 session=session)
         self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
                                         session=session)
+        later.merged(keep, twin)
         known.refresh(self.objects, {"_id": keep}, session)
         known.drop(twin)
         if self._learning:  # (the catalogue's models of twin are keep's)
@@ -520,13 +526,15 @@ def _looks_fields(looks: list[tuple]) -> dict:
 class Later:
     """A batch's object writes, events and cluster links, written together (a few commands
     per batch instead of a few per scene); nothing in a batch reads them before `write` (the
-    scenes' candidates are in memory: known_objects.py), but a merge."""
+    scenes' candidates are in memory: known_objects.py, and which scenes an object was seen in
+    is answered here), but a merge."""
 
     def __init__(self, objects, events, clusters, session):
         self.targets, self.session = (objects, events, clusters), session
         self.objects: dict = {}  # object id -> its writes so far: Written
         self.events: list[dict] = []
         self.links: list[UpdateOne] = []
+        self._seen_in: dict = {}  # object id -> the scenes it was seen in, once asked
 
     def update(self, object_id, fields: dict, labels: Counter | None = None,
                first_seen: int | None = None) -> None:
@@ -543,6 +551,27 @@ class Later:
     def add(self, events: list[dict], links: list[UpdateOne]) -> None:
         self.events += events
         self.links += links
+        for event in events:
+            if event["cluster_id"] is not None and event["object_id"] in self._seen_in:
+                self._seen_in[event["object_id"]].add(event["scene_id"])
+
+    def seen_in(self, object_id) -> set:
+        """The scenes the object was seen in, those of this batch's events too: read once a
+        batch (lookalikes are asked about scene after scene), then kept up to date."""
+        if object_id not in self._seen_in:
+            stored = self.targets[1].distinct("scene_id", {"object_id": object_id,
+                                                           "cluster_id": {"$ne": None}},
+                                              session=self.session)
+            self._seen_in[object_id] = set(stored) | {
+                e["scene_id"] for e in self.events
+                if e["object_id"] == object_id and e["cluster_id"] is not None}
+        return self._seen_in[object_id]
+
+    def merged(self, keep, twin) -> None:
+        """`twin`'s events became `keep`'s (written: a merge writes what is pending first)."""
+        if twin in self._seen_in or keep in self._seen_in:
+            self._seen_in.pop(keep, None)
+            self._seen_in.pop(twin, None)
 
     def write(self) -> None:
         objects, events, clusters = self.targets

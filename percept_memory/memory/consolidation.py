@@ -89,6 +89,7 @@ class Consolidation:
         # cluster id -> its object by the end of its scene (a later scene of the batch may
         # merge that object into another), for the stages after this one in the batch
         self.decided: dict = {}
+        self.created: set = set()  # the objects this batch made: nothing is stored of them
         self._known: dict[str, KnownObjects] = {}  # map -> its objects, as last written
         self._any_split = True  # whether people split any object (asked once per batch)
         self.objects = store.db[OBJECTS]
@@ -107,6 +108,7 @@ class Consolidation:
         known.version = ObjectId()  # the version this transaction writes, if it commits
         later = Later(self.objects, self.events, self.store.clusters, session)
         self.decided = {}
+        self.created = set()
         # one round trip a batch, not one a scene: splits are rare, most stores have none
         self._any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
                                                        session=session) is not None
@@ -183,7 +185,11 @@ class Consolidation:
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
             cluster = None if unseen else clusters.get(decision.key)
-            object_id = decision.object if decision.object is not None else ObjectId()
+            if decision.object is None:
+                object_id = ObjectId()
+                self.created.add(object_id)
+            else:
+                object_id = decision.object
             previous = by_id.get(object_id, {})
             if unseen and previous.get("state") in (_STATE[decision.explanation], "disappeared"):
                 continue  # events record changes: still hidden (or still gone) is no news

@@ -60,6 +60,11 @@ class Change:
 class PartialModel:
     graph: GraphOfViews
     length: float  # how much was observed: the shortest singleton is forgotten first
+    kinds: frozenset  # its modalities, counted in and out of the learner's (a pass per element)
+
+    @classmethod
+    def of(cls, graph: GraphOfViews, length: float) -> PartialModel:
+        return cls(graph, length, frozenset(graph.kinds()))
 
 
 class Learner:
@@ -118,7 +123,7 @@ class Learner:
 
     def _learn(self, model_id: Hashable, graph: GraphOfViews, length: float) -> None:
         ranked = self.classify(graph)
-        self._add(model_id, PartialModel(graph, length))
+        self._add(model_id, PartialModel.of(graph, length))
         touched = {model_id}
         if ranked and ranked[0][1] >= self.params.recognised:
             touched |= self._update_similarity_graph(model_id, sorted(self.members[ranked[0][0]]))
@@ -138,7 +143,7 @@ class Learner:
         learner = cls(params)
         rows = list(models)
         for model_id, graph, length, _ in rows:
-            learner._add(model_id, PartialModel(graph, length))
+            learner._add(model_id, PartialModel.of(graph, length))
         for model_id, _, _, edges in rows:
             for other, weight in edges.items():
                 if other in learner.models:
@@ -293,7 +298,7 @@ class Learner:
 
     def _add(self, m: Hashable, model: PartialModel) -> None:
         self.models[m] = model
-        self._modalities.update(model.graph.kinds())
+        self._modalities.update(model.kinds)
         self.edges[m] = {}
         self.changed.add(m)
 
@@ -311,7 +316,7 @@ class Learner:
             else:
                 self._dissolved.discard(cluster)
                 self._drop_cluster(cluster)
-        self._modalities.subtract(self.models[m].graph.kinds())
+        self._modalities.subtract(self.models[m].kinds)
         self._modalities += Counter()  # the modalities no model holds any more: gone
         del self.models[m], self.edges[m]
         self.changed.add(m)

@@ -159,7 +159,7 @@ class Batch:
         objects = self._objects(list(cluster_ids))
         evidence = self.stage.identity.observations(list(objects), self.session)
         learnt: list[ObjectId] = []
-        unread = set(objects.values()) - self.tracks.keys()
+        unread = set(objects.values()) - self.tracks.keys() - self.stage.identity.created
         if unread:
             self.tracks.update((doc["_id"], doc) for doc in self.stage.tracks.find(
                 {"_id": {"$in": list(unread)}}, session=self.session))

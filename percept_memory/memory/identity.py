@@ -234,6 +234,7 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
     its best match of its type on the other side; NaN where a pair shares no comparable type."""
     log_sum, count = np.zeros((len(new), len(known))), np.zeros((len(new), len(known)))
     shared = {kind for group in new for kind in group} & {kind for group in known for kind in group}
+    bests, owners = [], []  # per type, per piece of new evidence: its best match per known
     for kind in sorted(shared, key=lambda k: (k.__module__, k.__qualname__)):
         rows = [(i, item) for i, group in enumerate(new) for item in group.get(kind, ())]
         cols = [(j, item) for j, group in enumerate(known) for item in group.get(kind, ())]
@@ -242,9 +243,12 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         col_owners = np.array([j for j, _ in cols])  # ascending: cols are listed owner by owner
         starts = np.flatnonzero(np.diff(col_owners, prepend=-1))
         best[:, col_owners[starts]] = np.fmax.reduceat(values, starts, axis=1)
+        bests.append(best)
+        owners += [i for i, _ in rows]
+    if bests:  # summed in one pass, in the same order as type by type
+        best = np.concatenate(bests)
         compared = ~np.isnan(best)
         logs = np.log(np.clip(np.where(compared, best, 1.0), floor, 1.0))
-        owners = np.array([i for i, _ in rows])
         np.add.at(log_sum, owners, logs)
         np.add.at(count, owners, compared)
     with np.errstate(invalid="ignore"):

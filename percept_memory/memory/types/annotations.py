@@ -15,6 +15,7 @@ querying by its fields follow from its annotations. A class may also say
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from typing import Annotated, ClassVar, Literal
 
@@ -63,12 +64,19 @@ class Annotation(Identifiable):
         return {}
 
 
+def _read_only(vector: np.ndarray | None) -> np.ndarray | None:
+    """A vector kept with the annotation, shared by whoever asks: nobody may change it."""
+    if vector is not None:
+        vector.setflags(write=False)
+    return vector
+
+
 def _sqrt_distribution(histogram: ColorHistogram) -> np.ndarray | None:
-    return sqrt_distribution(histogram.histogram)
+    return histogram.roots
 
 
 def _unit_vector(feature: FeatureVector) -> np.ndarray | None:
-    return unit(feature.vector)
+    return feature.direction
 
 
 @stored_type("pm.annotation.Location")
@@ -181,6 +189,12 @@ class ColorHistogram(Annotation):
         """Its three fullest bins: a coarse word that the same side of an object repeats."""
         return compare.top_bins(self.histogram, 3, self.space)
 
+    @functools.cached_property
+    def roots(self) -> np.ndarray | None:
+        """The square roots of the normalised histogram, made once: identity compares a
+        remembered object's evidence with every scene's (evidence is never changed)."""
+        return _read_only(sqrt_distribution(self.histogram))
+
     @staticmethod
     def similarities(a: list[ColorHistogram], b: list[ColorHistogram]) -> np.ndarray:
         """Bhattacharyya overlap of every pair at once (sqrt p . sqrt q of the normalised
@@ -204,6 +218,11 @@ class FeatureVector(Annotation):
 
     def views(self) -> list[str]:
         return compare.visual_words(self.name, self.vector)
+
+    @functools.cached_property
+    def direction(self) -> np.ndarray | None:
+        """The vector scaled to length 1, made once (as ColorHistogram.roots)."""
+        return _read_only(unit(self.vector))
 
     @staticmethod
     def similarities(a: list[FeatureVector], b: list[FeatureVector]) -> np.ndarray:

@@ -163,19 +163,16 @@ class Commands(monitoring.CommandListener):
         pass
 
 
-def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own(
-        mongo_uri, empty, week, monkeypatch):
-    """The server's path: its consolidator thread works, the caller waits. The caller asks
-    MongoDB once and is then told by the thread's commit (with the poll for other processes'
-    work made 5 s, a missed commit would show as a second ask); the thread takes the lease in
-    one command and gives it back in the batch's own transaction."""
-    monkeypatch.setattr("percept_memory.memory.pipeline.WAIT_POLL_S", 5.0)
+def waited_for(mongo_uri, empty, week, threaded: bool) -> Commands:
+    """The commands of storing 5 scenes one by one, each waited for (the map's first 3
+    before: its first batches read more), by the pipeline's thread or by the caller."""
     commands = Commands()
     client = MongoClient(mongo_uri, event_listeners=[commands], **CLIENT_OPTIONS)
     store = MemoryStore(client, empty.db.name, gridfs_threshold=empty.gridfs_threshold)
     service = IngestService(store)
-    service.ingest_batch(week.scenes[:3], wait=60)  # the map's first batches read more
-    service.pipeline.start()
+    service.ingest_batch(week.scenes[:3], wait=60)
+    if threaded:
+        service.pipeline.start()
     try:
         commands.on = True
         for scene in week.scenes[3:8]:
@@ -186,12 +183,37 @@ def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own
     finally:
         service.pipeline.stop()
         client.close()
+    return commands
+
+
+def outbox_asks(commands: Commands) -> dict:
     caller = threading.current_thread().name
-    assert {(name, target): n for (thread, name, target), n in commands.seen.items()
-            if thread == caller and target == OUTBOX} == {("distinct", OUTBOX): 5}  # once
+    return {(name, target): n for (thread, name, target), n in commands.seen.items()
+            if thread == caller and target == OUTBOX and name != "insert"}
+
+
+def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own(
+        mongo_uri, empty, week, monkeypatch):
+    """The server's path: its consolidator thread works, the caller waits. The caller asks
+    MongoDB once and is then told by the thread's commit (with the poll for other processes'
+    work made 5 s, a missed commit would show as a second ask); the thread takes the lease in
+    one command and gives it back in the batch's own transaction."""
+    monkeypatch.setattr("percept_memory.memory.pipeline.WAIT_POLL_S", 5.0)
+    commands = waited_for(mongo_uri, empty, week, threaded=True)
+    assert outbox_asks(commands) == {("distinct", OUTBOX): 5}  # once a scene
     lease = Counter({(name, target): n for (thread, name, target), n in commands.seen.items()
                      if thread == "pmem-pipeline" and target == MAPS and name != "find"})
     assert lease == {("findAndModify", MAPS): 5, ("update", MAPS): 5}  # taken; fence and end
+    assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
+
+
+def test_a_scene_the_caller_consolidates_itself_is_asked_about_once(mongo_uri, empty, week):
+    """The Python API's path, no consolidator thread: the caller works on its scene and knows
+    by its own commit that it went through, so MongoDB is asked once whether it is pending
+    (then it is read from the outbox to be worked on), not again after."""
+    commands = waited_for(mongo_uri, empty, week, threaded=False)
+    assert outbox_asks(commands) == {("distinct", OUTBOX): 5, ("find", OUTBOX): 5,
+                                     ("delete", OUTBOX): 5}
     assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
 
 

@@ -180,18 +180,25 @@ class Pipeline:
                 if time.monotonic() >= deadline:
                     return False
                 if self._thread is None and sum(self._work_on(name) for name in maps):
+                    if self._went_through_all(scene_ids):
+                        return True
                     continue
                 # another consolidator works on them: this pipeline's thread tells when it
                 # committed them; one elsewhere is asked after at most WAIT_POLL_S
                 with self._commits:
                     if self._commits.wait_for(
-                            lambda: all(i in self._went_through for i in scene_ids),
+                            lambda: self._went_through_all(scene_ids),
                             min(WAIT_POLL_S, max(deadline - time.monotonic(), 0))):
                         return True
             return True
         finally:
             with self._ingest:
                 self._waiting -= 1
+
+    def _went_through_all(self, scene_ids: Sequence[ObjectId]) -> bool:
+        """Whether this process committed all these scenes' stages (recently)."""
+        with self._commits:
+            return all(i in self._went_through for i in scene_ids)
 
     def start(self) -> Pipeline:
         """Run in a background thread until stop()."""

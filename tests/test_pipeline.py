@@ -41,6 +41,7 @@ from percept_memory.memory.schema import (
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import (
     Cluster,
+    DifferentObject,
     Location,
     Scene,
     SemanticColor,
@@ -389,6 +390,24 @@ def test_observations_in_two_maps_are_never_one_object(empty):
     assert {e["explanation"] for e in empty.db[EVENTS].find()} == {"appear"}
     engine = QueryEngine(empty)
     assert [o.map for o in engine.what_is_at(map="lab").objects] == ["lab"]
+
+
+def test_a_split_that_comes_with_a_scene_holds_though_the_consolidator_knew_of_none(empty):
+    """The consolidator keeps whether people split any objects with the map's objects (asked
+    once); a split that arrives in a scene's own cluster is taken into account all the same."""
+    base = 5_500_000_000_000_000_000
+    service = IngestService(empty)  # one pipeline: its identity keeps the map's objects
+    earlier = [service.ingest(Scene(timestamp=base + i, robot="r", map="split", clusters=[
+        thing(0.2, "red")], view_region=looking_at(0.0, 1.0)), wait=30).cluster_ids[0]
+        for i in range(2)]
+    said = Cluster(annotations=[Location(region="table", position=(0.2, 0.0, 0.8)),
+                                SemanticColor(ratios={"red": 1.0}), Shape(shape="box")])
+    said.annotations.append(DifferentObject(split_off=[said.ensure_id()], apart_from=earlier,
+                                            author="ana", time=base))
+    service.ingest(Scene(timestamp=base + 2, robot="r", map="split", clusters=[said],
+                         view_region=looking_at(0.0, 1.0)), wait=30)
+    objects = [empty.clusters.find_one({"_id": c})["object_id"] for c in [*earlier, said.id]]
+    assert objects[0] == objects[1] != objects[2]
 
 
 def test_any_finite_coordinates_work(empty):

@@ -91,7 +91,7 @@ class Consolidation:
         self.decided: dict = {}
         self.created: set = set()  # the objects this batch made: nothing is stored of them
         self._known: dict[str, KnownObjects] = {}  # map -> its objects, as last written
-        self._any_split = True  # whether people split any object (asked once per batch)
+        self._any_split = True  # whether people split any object (the batch's map's objects')
         self.objects = store.db[OBJECTS]
         self.events = store.db[EVENTS]
         self.calibrations = store.db[CALIBRATION]
@@ -109,9 +109,10 @@ class Consolidation:
         later = Later(self.objects, self.events, self.store.clusters, session)
         self.decided = {}
         self.created = set()
-        # one round trip a batch, not one a scene: splits are rare, most stores have none
-        self._any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
-                                                       session=session) is not None
+        if known.any_split is None:  # asked once per map's objects: most stores have none
+            known.any_split = self.store.clusters.find_one(ANY_SPLIT, {"_id": 1},
+                                                           session=session) is not None
+        self._any_split = known.any_split
         learning = self._learning = self.catalogue and self.catalogue.begin(
             map_name, session, stored and stored.get("version"))
         for scene, arrived in self._scenes(scene_ids, session):
@@ -172,6 +173,8 @@ class Consolidation:
         known = [_known(o, in_view, seen_as) for o, in_view in believed
                  if o["last_cluster"] in seen_as]
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
+        if not self._any_split and any(splits(c.annotations) for c in scene.clusters):
+            self._any_split = known_objects.any_split = True  # (one came with the scene)
         new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
         apart = self._kept_apart(scene, kept, later, session)
         decisions = resolve(new, known, self.params, calibration, apart=apart,

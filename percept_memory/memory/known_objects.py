@@ -41,6 +41,9 @@ class KnownObjects:
         # ids, least recently seen first (those seen at the same time in any order)
         self._order: OrderedDict = OrderedDict()
         self._in_order = True  # False when a put came out of order: sorted when next read
+        # whether people split any objects (None: not asked yet), kept as long as these are:
+        # a split made later rebuilds its map, or comes with a scene (consolidation.py)
+        self.any_split: bool | None = None
 
     @property
     def version(self) -> ObjectId | None:

@@ -15,7 +15,7 @@ length, edges [[model, weight]], entry}: `entry` names its cluster (the catalogu
 object learnt); `catalogue_tracks` one per object {_id: object id, map, model, observations,
 last (the views of its last observation), seen, last_seen}; `catalogue_history` the entries
 that merged or split {map, time, cluster_id (the observation whose learning did it), kind,
-before, after}. The learner of each map is kept in
+before, after}. The learner of each map (and the tracks read or written) is kept in
 memory, read again when the stored version differs (another consolidator, an aborted
 transaction: the version is identity's, written with its calibration in the same
 transaction); in it, models are named by their ids' 12 bytes (bytes hash and compare in C,
@@ -75,15 +75,16 @@ class CatalogueStage:
         self.models = store.db[CATALOGUE]
         self.tracks = store.db[CATALOGUE_TRACKS]
         self.history = store.db[CATALOGUE_HISTORY]
-        # map -> (the version its learner is of, the learner, each model's object)
-        self._learners: dict[str, tuple[ObjectId | None, Learner, dict]] = {}
+        # map -> (the version its learner is of, the learner, each model's object, the
+        # object tracks read or written so far: as stored, by object id)
+        self._learners: dict[str, tuple[ObjectId | None, Learner, dict, dict]] = {}
 
     def learner(self, map_name: str, session=None) -> Learner:
         """The map's catalogue as stored now."""
         return self._learner(map_name, session)[1]
 
     def _learner(self, map_name: str, session, version=UNREAD
-                 ) -> tuple[ObjectId | None, Learner, dict]:
+                 ) -> tuple[ObjectId | None, Learner, dict, dict]:
         """The map's learner, read again unless it is of the version stored (identity's)."""
         if version is UNREAD:
             version = self.identity.stored_version(map_name, session)
@@ -94,19 +95,20 @@ class CatalogueStage:
                      doc["length"], {other.binary: w for other, w in doc["edges"]})
                     for doc in docs)
             self._learners[map_name] = (version, Learner.restored(self.params, rows),
-                                        {doc["_id"].binary: doc["object_id"] for doc in docs})
+                                        {doc["_id"].binary: doc["object_id"] for doc in docs},
+                                        {})
         return self._learners[map_name]
 
     def begin(self, map_name: str, session, version: ObjectId | None) -> Batch:
         """A batch of scenes of the map to learn, one `observe` per scene in time order, then
         `finish` (the writes, in `session`'s transaction). `version`: identity's, as stored
         when the transaction began."""
-        _, learner, objects = self._learner(map_name, session, version)
+        _, learner, objects, tracks = self._learner(map_name, session, version)
         self._learners.pop(map_name)  # until this transaction's writes are known to be in
-        return Batch(self, map_name, learner, objects, session)
+        return Batch(self, map_name, learner, objects, tracks, session)
 
-    def _write(self, learner: Learner, objects: dict, map_name: str, learnt: dict,
-               session, version: ObjectId) -> None:
+    def _write(self, learner: Learner, objects: dict, tracks: dict, map_name: str,
+               learnt: dict, session, version: ObjectId) -> None:
         """The models that changed; the learner is kept as of `version`, the one identity
         writes in this transaction. `learnt`: the models learnt (again) in this batch, with
         their objects: written whole; the others only changed their edges or entry (a model's
@@ -131,7 +133,7 @@ class CatalogueStage:
         learner.changed.clear()
         if writes:
             self.models.bulk_write(writes, session=session)
-        self._learners[map_name] = (version, learner, objects)
+        self._learners[map_name] = (version, learner, objects, tracks)
 
     def reset(self, map_name: str) -> None:
         """Forget the map's catalogue (it is learnt again from the map's scenes)."""
@@ -147,10 +149,10 @@ class Batch:
     far, whatever the batching."""
 
     def __init__(self, stage: CatalogueStage, map_name: str, learner: Learner, objects: dict,
-                 session):
+                 tracks: dict, session):
         self.stage, self.map_name, self.learner, self.session = stage, map_name, learner, session
         self.objects = objects  # model (its id's bytes) -> the object whose track made it
-        self.tracks: dict = {}  # object id -> its track, as read or grown in this batch
+        self.tracks = tracks  # object id -> its track, as read before or grown in this batch
         self.touched, self.learnt, self.changes = set(), {}, []
 
     def observe(self, cluster_ids: Sequence[ObjectId], time: int) -> list[ObjectId]:
@@ -267,5 +269,5 @@ class Batch:
                                           for t in sorted(self.touched)], session=self.session)
         if self.changes:
             self.stage.history.insert_many(self.changes, session=self.session)
-        self.stage._write(self.learner, self.objects, self.map_name, self.learnt, self.session,
-                          version)
+        self.stage._write(self.learner, self.objects, self.tracks, self.map_name, self.learnt,
+                          self.session, version)

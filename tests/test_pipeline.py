@@ -145,17 +145,20 @@ def test_the_pipeline_thread_gives_way_to_ingest_then_consolidates_everything_on
 
 
 class Commands(monitoring.CommandListener):
-    """The commands a client sends while `on`, as (thread, name, collection): pymongo's
-    synchronous API sends a command from the thread that asked for it."""
+    """The commands a client sends while `on`, as (thread, name, collection), and the write
+    concerns each (thread, name) asked for: pymongo's synchronous API sends a command from
+    the thread that asked for it."""
 
     def __init__(self):
-        self.seen, self.on = Counter(), False
+        self.seen, self.on, self.concerns = Counter(), False, {}
 
     def started(self, event):
         if self.on:
-            target = event.command.get(event.command_name)
-            self.seen[threading.current_thread().name, event.command_name,
-                      target if isinstance(target, str) else ""] += 1
+            thread, target = threading.current_thread().name, event.command.get(
+                event.command_name)
+            self.seen[thread, event.command_name, target if isinstance(target, str) else ""] += 1
+            self.concerns.setdefault((thread, event.command_name), set()).add(
+                tuple(sorted((event.command.get("writeConcern") or {}).items())))
 
     def succeeded(self, event):
         pass
@@ -206,6 +209,14 @@ def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own
                      if thread == "pmem-pipeline" and target == MAPS and name != "find"})
     assert lease == {("findAndModify", MAPS): 5, ("update", MAPS): 5}  # taken; fence and end
     assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
+    # the scene is journaled before it is acknowledged; the belief and the lease are not
+    # waited for (redone from the outbox after a crash)
+    stored = {c for (thread, name), concerns in commands.concerns.items()
+              if name == "commitTransaction" and thread != "pmem-pipeline" for c in concerns}
+    unjournaled = (("j", False), ("w", 1))
+    assert stored and unjournaled not in stored
+    for name in ("findAndModify", "commitTransaction"):
+        assert commands.concerns["pmem-pipeline", name] == {unjournaled}
 
 
 def test_a_scene_the_caller_consolidates_itself_is_asked_about_once(mongo_uri, empty, week):

@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import suppress
 
 from bson import ObjectId
-from pymongo import MongoClient, UpdateOne
+from pymongo import MongoClient, UpdateOne, WriteConcern
 from pymongo.errors import (
     DocumentTooLarge,
     OperationFailure,
@@ -488,8 +488,10 @@ class MemoryStore(StoreBase):
             self.clusters.insert_many(written.clusters, session=session)
         self.outbox.insert_many(written.outbox, session=session)
 
-    def _transaction(self, work, retry_unreachable: bool = True, session=None):
-        """Run work(session) in a transaction, in a session of its own or the one given.
+    def _transaction(self, work, retry_unreachable: bool = True, session=None,
+                     write_concern: WriteConcern | None = None):
+        """Run work(session) in a transaction, in a session of its own or the one given,
+        committed with the client's write concern or the one given.
         pymongo retries it for two minutes while no server can be selected; with
         `retry_unreachable=False` that is an Unavailable error at once instead (an ingest's
         caller decides whether to send again)."""
@@ -503,9 +505,9 @@ class MemoryStore(StoreBase):
                 raise Unavailable(f"not stored: {reason(error)}") from None
 
         if session is not None:
-            return session.with_transaction(attempt)
+            return session.with_transaction(attempt, write_concern=write_concern)
         with self.client.start_session() as own:
-            return own.with_transaction(attempt)
+            return own.with_transaction(attempt, write_concern=write_concern)
 
     def _catalogue(self, written: docs.Documents) -> None:
         """After a commit: record the stored types in `types` and the words new to this

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from bson import ObjectId
-from pymongo import UpdateOne
+from pymongo import DeleteMany, DeleteOne, UpdateMany, UpdateOne
 
 from percept_memory.converters import decode
 
@@ -383,18 +383,20 @@ class Consolidation:
         """One object remembered as two: `twin`'s looks, observations, names and history
         become `keep`'s, and `twin` is no more."""
         later.write()  # the merge reads the objects and moves the events and links
-        kept, gone = (self.objects.find_one({"_id": i}, session=session) for i in (keep, twin))
+        both = {doc["_id"]: doc for doc in self.objects.find({"_id": {"$in": [keep, twin]}},
+                                                             session=session)}
+        kept, gone = both[keep], both[twin]
         weights = stored_weights(kept) + stored_weights(gone)
         mine = set(_views(kept))
         looks = [look for look in _looks(gone) if look[0] not in mine] + _looks(kept)
-        self.objects.update_one({"_id": keep}, {
+        self.objects.bulk_write([UpdateOne({"_id": keep}, {
             "$set": {**_looks_fields(looks), **naming_fields(weights),
                      "first_seen": min(kept["first_seen"], gone["first_seen"])},
-            "$inc": {"observations": gone.get("observations", 0)}}, session=session)
-        self.objects.delete_one({"_id": twin}, session=session)
-        self.events.delete_many({"object_id": twin, "scene_id": scene.id}, session=session)
-        self.events.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
-                                session=session)
+            "$inc": {"observations": gone.get("observations", 0)}}),
+            DeleteOne({"_id": twin})], session=session)
+        self.events.bulk_write([DeleteMany({"object_id": twin, "scene_id": scene.id}),
+                                UpdateMany({"object_id": twin}, {"$set": {"object_id": keep}})],
+                               session=session)
         self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
                                         session=session)
         later.merged(keep, twin)

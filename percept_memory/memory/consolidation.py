@@ -580,9 +580,8 @@ class Later:
 
     def merged(self, keep, twin) -> None:
         """`twin`'s events became `keep`'s (written: a merge writes what is pending first)."""
-        if twin in self._seen_in or keep in self._seen_in:
-            self._seen_in.pop(keep, None)
-            self._seen_in.pop(twin, None)
+        self._seen_in.pop(keep, None)
+        self._seen_in.pop(twin, None)
 
     def write(self) -> None:
         objects, events, clusters = self.targets

@@ -31,7 +31,7 @@ each stage's writes land exactly once or not at all, whoever dies when.
 - Durable where it must be: a scene and its outbox entry commit as the client's write concern
   says (majority: journaled). What the stages write is derived from them, and the leases are
   advisory (the fence decides): a stage transaction and a lease commit without waiting for
-  the journal (UNJOURNALED, a third of a scene's wait measured). A crash may lose the last
+  the journal (UNJOURNALED: each wait cost a scene waited for ~1.3 ms). A crash may lose the last
   ~100 ms of them; their outbox entries come back with them, so those scenes are consolidated
   again, still exactly once, and whoever kept the lost belief in memory finds its version
   gone and reads it again.

@@ -60,7 +60,7 @@ class Change:
 class PartialModel:
     graph: GraphOfViews
     length: float  # how much was observed: the shortest singleton is forgotten first
-    kinds: frozenset  # its modalities, counted in and out of the learner's (a pass per element)
+    kinds: frozenset  # its modalities, found once (a pass over its elements)
 
     @classmethod
     def of(cls, graph: GraphOfViews, length: float) -> PartialModel:

@@ -71,14 +71,6 @@ def _read_only(vector: np.ndarray | None) -> np.ndarray | None:
     return vector
 
 
-def _sqrt_distribution(histogram: ColorHistogram) -> np.ndarray | None:
-    return histogram.roots
-
-
-def _unit_vector(feature: FeatureVector) -> np.ndarray | None:
-    return feature.direction
-
-
 @stored_type("pm.annotation.Location")
 class Location(Annotation):
     """Where the object is: the region of interest it was found in (e.g. counter_top_sink),
@@ -199,12 +191,12 @@ class ColorHistogram(Annotation):
     def similarities(a: list[ColorHistogram], b: list[ColorHistogram]) -> np.ndarray:
         """Bhattacharyya overlap of every pair at once (sqrt p . sqrt q of the normalised
         histograms): identity compares every new observation with every candidate."""
-        return compare.pairwise(a, b, lambda h: (h.space, h.histogram.shape), _sqrt_distribution,
-                         lambda p, q: np.minimum(p @ q.T, 1.0))
+        return compare.pairwise(a, b, lambda h: (h.space, h.histogram.shape),
+                                lambda h: h.roots, lambda p, q: np.minimum(p @ q.T, 1.0))
 
     def descriptors(self) -> dict[str, np.ndarray]:
         """The same square roots, so search ranks by the same overlap (per space and size)."""
-        vector = _sqrt_distribution(self)
+        vector = self.roots
         return {} if vector is None else {
             f"histogram-{self.space}-{vector.size}": vector}
 
@@ -227,12 +219,12 @@ class FeatureVector(Annotation):
     @staticmethod
     def similarities(a: list[FeatureVector], b: list[FeatureVector]) -> np.ndarray:
         """Cosine of every pair at once (0 for opposite directions)."""
-        return compare.pairwise(a, b, lambda f: (f.name, f.vector.shape), _unit_vector,
-                         lambda u, v: np.clip(u @ v.T, 0.0, 1.0))
+        return compare.pairwise(a, b, lambda f: (f.name, f.vector.shape),
+                                lambda f: f.direction, lambda u, v: np.clip(u @ v.T, 0.0, 1.0))
 
     def descriptors(self) -> dict[str, np.ndarray]:
         """The direction, so search ranks by the same cosine (per name and length)."""
-        vector = _unit_vector(self)
+        vector = self.direction
         return {} if vector is None else {f"feature-{self.name}-{vector.size}": vector}
 
 

@@ -403,6 +403,32 @@ def test_observations_in_two_maps_are_never_one_object(empty):
     assert [o.map for o in engine.what_is_at(map="lab").objects] == ["lab"]
 
 
+def test_lookalikes_asked_about_scene_after_scene_cost_one_read_each_a_batch(mongo_uri, empty):
+    """Two red boxes seen together, then one of them alone, eight times: each scene asks
+    whether the one seen could be the other (seen together once: no). Which scenes each was
+    seen in is read once in the batch and then kept from its own writes, which go out once at
+    its end: two distincts and one flush of events, not two and one a scene."""
+    base = 5_200_000_000_000_000_000
+    scenes = [Scene(timestamp=base, robot="r", map="twins", view_region=looking_at(0.0, 1.0),
+                    clusters=[thing(0.2, "red"), thing(0.6, "red")])]
+    scenes += [Scene(timestamp=base + i, robot="r", map="twins", clusters=[thing(0.2, "red")],
+                     view_region=looking_at(0.0, 0.4)) for i in range(1, 9)]
+    IngestService(empty).ingest_batch(scenes)
+    commands = Commands()
+    client = MongoClient(mongo_uri, event_listeners=[commands], **CLIENT_OPTIONS)
+    try:
+        store = MemoryStore(client, empty.db.name, gridfs_threshold=empty.gridfs_threshold)
+        commands.on = True
+        memory_pipeline(store).drain(timeout=60)
+        commands.on = False
+    finally:
+        client.close()
+    on_events = {name: n for (_, name, target), n in commands.seen.items() if target == EVENTS}
+    assert on_events == {"distinct": 2, "insert": 1}
+    assert [e["explanation"] for e in empty.db[EVENTS].find().sort("time")] == [
+        "appear", "appear", "hidden"] + ["stay"] * 8
+
+
 def test_a_split_that_comes_with_a_scene_holds_though_the_consolidator_knew_of_none(empty):
     """The consolidator keeps whether people split any objects with the map's objects (asked
     once); a split that arrives in a scene's own cluster is taken into account all the same."""

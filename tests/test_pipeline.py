@@ -209,6 +209,8 @@ def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own
                      if thread == "pmem-pipeline" and target == MAPS and name != "find"})
     assert lease == {("findAndModify", MAPS): 5, ("update", MAPS): 5}  # taken; fence and end
     assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
+    # the catalogue kept the tracks it wrote: the objects seen again are not read again
+    assert commands.seen["pmem-pipeline", "find", CATALOGUE_TRACKS] == 0
     # the scene is journaled before it is acknowledged; the belief and the lease are not
     # waited for (redone from the outbox after a crash)
     stored = {c for (thread, name), concerns in commands.concerns.items()

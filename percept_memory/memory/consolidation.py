@@ -222,7 +222,7 @@ class Consolidation:
             self._merge(keep, twin, scene, known_objects, later, session)
             merged[twin] = keep
         for other, look in taken_looks:
-            self._forget_look(other, look, known_objects, later, session)
+            self._forget_look(other, look, known_objects, later)
         for keep, twin in self._asked_to_merge(asked, seen_as, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
             if keep != twin and not self._split_between(keep, twin, later, session):
@@ -360,8 +360,8 @@ class Consolidation:
                     looks.append((other, look))
         return pairs, looks
 
-    def _forget_look(self, object_id, look, known: KnownObjects, later: Later,
-                     session) -> None:
+    @staticmethod
+    def _forget_look(object_id, look, known: KnownObjects, later: Later) -> None:
         """A look of an object that another object, seen apart from it, now shows beyond
         doubt, and that it does not show itself now (not its last): it came by a wrong link
         and is forgotten, so it draws no more of the other object's observations. (Identical
@@ -370,8 +370,7 @@ class Consolidation:
         if doc is None or look == doc["last_cluster"] or look not in _views(doc):
             return
         fields = _looks_fields([kept for kept in _looks(doc) if kept[0] != look])
-        later.write()  # (its pending looks, written after, would bring the look back)
-        self.objects.update_one({"_id": object_id}, {"$set": fields}, session=session)
+        later.update(object_id, fields)  # over its pending looks, if any
         known.write(object_id, fields)
 
     @staticmethod

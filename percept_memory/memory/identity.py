@@ -246,7 +246,7 @@ def looks(new: list[dict[type, list]], known: list[dict[type, list]], floor: flo
         bests.append(best)
         owners += [i for i, _ in rows]
     if bests:  # summed in one pass, in the same order as type by type
-        best = np.concatenate(bests)
+        best, owners = np.concatenate(bests), np.asarray(owners)
         compared = ~np.isnan(best)
         logs = np.log(np.clip(np.where(compared, best, 1.0), floor, 1.0))
         np.add.at(log_sum, owners, logs)

@@ -388,10 +388,10 @@ class Consolidation:
         weights = stored_weights(kept) + stored_weights(gone)
         mine = set(_views(kept))
         looks = [look for look in _looks(gone) if look[0] not in mine] + _looks(kept)
+        fields = {**_looks_fields(looks), **naming_fields(weights),
+                  "first_seen": min(kept["first_seen"], gone["first_seen"])}
         self.objects.bulk_write([UpdateOne({"_id": keep}, {
-            "$set": {**_looks_fields(looks), **naming_fields(weights),
-                     "first_seen": min(kept["first_seen"], gone["first_seen"])},
-            "$inc": {"observations": gone.get("observations", 0)}}),
+            "$set": fields, "$inc": {"observations": gone.get("observations", 0)}}),
             DeleteOne({"_id": twin})], session=session)
         self.events.bulk_write([DeleteMany({"object_id": twin, "scene_id": scene.id}),
                                 UpdateMany({"object_id": twin}, {"$set": {"object_id": keep}})],
@@ -399,7 +399,7 @@ class Consolidation:
         self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
                                         session=session)
         later.merged(keep, twin)
-        known.refresh(self.objects, {"_id": keep}, session)
+        known.take(kept | fields)  # as just written: no read back
         known.drop(twin)
         if self._learning:  # (the catalogue's models of twin are keep's)
             self._learning.merged(keep, twin)

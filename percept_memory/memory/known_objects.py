@@ -57,15 +57,14 @@ class KnownObjects:
     def load(cls, objects: Collection, map_name: str, version: ObjectId | None,
              session=None) -> KnownObjects:
         known = cls(version)
-        known.refresh(objects, {"map": map_name}, session)
+        for doc in objects.find({"map": map_name}, dict.fromkeys(FIELDS, 1), session=session):
+            known.take(doc)
         return known
 
-    def refresh(self, objects: Collection, query: dict, session=None) -> None:
-        """Read these objects again (after a write that changed them in the database only)."""
-        for doc in objects.find(query, dict.fromkeys(FIELDS, 1), session=session):
-            self.put(doc)
-            self.places.put(doc["_id"], doc.get("position"),
-                            live=doc["state"] != "disappeared")
+    def take(self, doc: dict) -> None:
+        """An object as the database holds it now (its FIELDS), with its place."""
+        self.put({k: v for k, v in doc.items() if k == "_id" or k in FIELDS})
+        self.places.put(doc["_id"], doc.get("position"), live=doc["state"] != "disappeared")
 
     def write(self, object_id: ObjectId, fields: dict, first_seen: int | None = None
               ) -> None:

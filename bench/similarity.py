@@ -373,6 +373,10 @@ def through_mongodb(count: int, folder: Path, keep: str | None, queries: int = 2
         # not have been committed then): those of the last seconds of storing, until then.
         time.sleep(max(0.0, similarity.MARGIN.total_seconds() - (time.perf_counter() - stored)))
         loaded.refresh()
+        start = time.perf_counter()  # what the first filtered query after the load pays
+        laid = [v.laid(loaded.rows.passing(RowFilter(after=0)).layout)
+                for v in loaded.vectors.values()]
+        layout_s = time.perf_counter() - start
         latency = scale_latency(store, loaded, queries)
     per_million = 1e6 / count
     p95 = max(row["similar_to_p95_ms"] for per in latency.values()
@@ -384,8 +388,10 @@ def through_mongodb(count: int, folder: Path, keep: str | None, queries: int = 2
                 round(build_s, 1),
             "index_build_clusters_per_s": round(count / build_s) if built else None,
             "index_load_s": round(load_s, 2), "index_size_mb": round(size / 2**20, 1),
-            "int8_copies_mb": round(sum(  # in memory only, beside the files' size
-                v.steps.nbytes + v.sizes.nbytes for v in loaded.vectors.values()) / 2**20, 1),
+            "rows_laid_out_s": round(layout_s, 2),  # sorted by robot, map and time
+            "int8_copies_mb": round(sum(  # in memory only, beside the files' size: by row and
+                v.steps.nbytes + v.sizes.nbytes for v in loaded.vectors.values())  # laid out
+                / 2**20 + sum(c.steps.nbytes + c.sizes.nbytes for c in laid) / 2**20, 1),
             "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
                                          / 1024),
             "per_million_linear_extrapolation": None if count >= 1_000_000 or not built else {

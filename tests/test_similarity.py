@@ -190,9 +190,12 @@ def test_an_unreadable_or_older_index_is_rebuilt_from_mongodb(store, day, tmp_pa
         store.db[collection].delete_many({key: stored[0].scene_id})
 
 
-def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed():
-    """The rows and their columns sorted by time are merged with those added since, not
-    sorted again."""
+@pytest.mark.parametrize("layout_tail", [0, 1000, similarity.LAYOUT_TAIL])
+def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed(monkeypatch,
+                                                                          layout_tail):
+    """The rows laid out again at every batch (0), at some (1000) or never (the default: the
+    3,000 rows stay rows added since the layout)."""
+    monkeypatch.setattr(similarity, "LAYOUT_TAIL", layout_tail)
     rng = np.random.default_rng(0)
     rows = similarity.Rows()
     times = rng.integers(0, 100, 3000)  # out of order, many alike: window ends are inclusive
@@ -213,7 +216,7 @@ def test_a_filter_passes_the_rows_it_should_as_rows_are_added_and_removed():
                             and (after is None or times[row] >= after)
                             and (before is None or times[row] <= before)]
                 found = rows.passing(RowFilter(**where, after=after, before=before))
-                assert sorted(found.tolist()) == expected
+                assert sorted(found.rows().tolist()) == expected
 
 
 @pytest.mark.parametrize("exact_rows", [similarity.EXACT_ROWS, 0])

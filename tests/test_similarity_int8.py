@@ -266,3 +266,39 @@ def test_of_rows_scoring_alike_the_first_added_are_found_whatever_the_scan_order
         with monkeypatch.context() as patched:
             in_float32(patched)
             assert set(vectors.best(shuffled, query, 6).tolist()) == expected
+
+
+@pytest.mark.parametrize("layout_tail", [0, 700, similarity.LAYOUT_TAIL])
+def test_rows_laid_out_added_since_and_removed_are_found_as_a_full_scan_finds_them(
+        tmp_path, monkeypatch, layout_tail):
+    """Searches between batches of rows added and removed, with the rows laid out again at
+    every batch (0), at every other (700) or never (the default: 3,000 rows stay rows added since):
+    the exact search finds the k best of a float64 scan of every row that passes."""
+    monkeypatch.setattr(similarity, "LAYOUT_TAIL", layout_tail)
+    rng = np.random.default_rng(6)
+    index = SimilarityIndex(None, tmp_path)  # type: ignore[arg-type]
+    rows = unit(rng.normal(size=(3000, 32)))
+    entries: list[Entry] = []
+    for first in range(0, 3000, 600):
+        batch = [Entry(ObjectId(), int(rng.integers(0, 1000)), ROBOTS[rng.integers(3)],
+                       REGIONS[rng.integers(2)], MAPS[rng.integers(2)],
+                       {"a": rows[i]} if i % 5 else {})  # every fifth without the descriptor
+                 for i in range(first, first + 600)]
+        index.add(batch)
+        entries += batch
+        for row in rng.integers(len(entries), size=20):
+            index.rows.remove(int(row))
+            index.vectors["a"].remove(int(row))
+        live = index.rows.columns["live"]
+        for where in random_filters(rng, 8):
+            query = unit(rng.normal(size=32))
+            passing = [i for i, e in enumerate(entries) if live[i] and "a" in e.descriptors
+                       and where.after <= e.time <= where.before
+                       and all(getattr(e, key) in getattr(where, key)
+                               for key in ("robot", "region", "map") if getattr(where, key))]
+            expected = sorted(passing, key=lambda i: -float(rows[i].astype(np.float64)
+                                                            @ query))[:7]
+            found = index.search({"a": query}, 7, where)
+            assert [m.cluster_id for m in found] == [entries[i].cluster_id for i in expected]
+    laid = index.rows.layout.count
+    assert laid == (3000 if layout_tail == 0 else 2400 if layout_tail == 700 else 0)

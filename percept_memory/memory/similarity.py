@@ -8,14 +8,17 @@ in place. hnswlib has no wheel (PyPI holds its source only: a C++ compiler at in
 and filters through a Python callback per candidate; faiss-cpu is a 19 MB wheel whose HNSW
 index cannot remove a vector. Filters need no help from the library: every cluster's time,
 robot, region and map never change once stored, so the index keeps them as numpy arrays (a
-row per cluster) and a filter selects rows (a time window by the rows sorted by time, the
-rest by masks over the window's rows). When at most EXACT_ROWS pass, those
-rows are searched exactly, from the vectors kept a second time as a matrix by row (memory
-for speed: a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the
-graph's neighbours are over-fetched and kept when they pass. The exact search scans an int8
-copy of the matrix (a scale per row; derived when loaded, never saved) and scores again in
-float32 only the rows its bound on the rounding leaves in doubt: its results are the float32
-scan's, at a quarter of the bytes fetched.
+row per cluster) and a filter selects rows. When at most EXACT_ROWS pass, those rows are
+searched exactly, from the vectors kept a second time as a matrix by row (memory for speed:
+a graph search has to fetch ~2k / (share passing) neighbours to keep k); else the graph's
+neighbours are over-fetched and kept when they pass. The exact search scans an int8 copy of
+the matrix (a scale per row; derived when loaded, never saved) and scores again in float32
+only the rows its bound on the rounding leaves in doubt: its results are the float32 scan's,
+at a quarter of the bytes fetched. That scan is bound by memory, so the int8 copy is kept in
+the order of a layout of the rows, sorted by robot, map and time (a database-style clustered
+index): a robot's or a map's time window is one range there, scanned as it lies, where the
+same rows gathered from all over took 2.5x as long. Rows added since the layout are scanned
+from the copy by row until there are enough of them to lay the rows out again.
 
 Kept current from a watermark, not a pipeline stage: the folder is local to each process
 (`pmem serve`, `pmem query`) while MongoDB may be shared, so each process's index catches up
@@ -71,6 +74,9 @@ PROGRESS_EVERY = 100  # chunks: a build from a large database logs how far it is
 # query of 150); so exact as long as it stays cheap: its cost is the rows', ~0.03 us each.
 EXACT_ROWS = 100_000
 SCORE_BLOCK = 2048  # rows gathered and scored at a time (~1 MB of 144 floats: in the cache)
+# The rows are laid out again (Rows.passing) when more than this many, or an eighth of those
+# laid out, were added since.
+LAYOUT_TAIL = 4096
 SCAN_THREADS = os.cpu_count() or 1  # a filter's rows are scanned in this many parts at once
 QUANTISE_BLOCK = 65_536  # rows made int8 at a time when loaded (each a float64 row meanwhile)
 STEPS = 127  # int8 steps each side of zero: a row's largest |value| is 127 of its scale
@@ -140,8 +146,7 @@ class Rows:
         self.columns = {key: np.array(given.get(key, []), dtype=dtype)
                         for key, dtype in COLUMNS.items()}
         self._live = int(self.columns["live"].sum())
-        self._by_time = np.zeros(0, np.int64)  # rows sorted by time (see passing)
-        self._sorted = {key: np.zeros(0, COLUMNS[key]) for key in META}  # their columns
+        self.layout = Layout.of(self, 0)  # no row laid out yet: see passing
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -160,6 +165,7 @@ class Rows:
         if self.columns["live"][row]:
             self.columns["live"][row] = False
             self._live -= 1
+            self.layout.remove(row)
 
     def add(self, cluster_id: ObjectId, time: int, values: Mapping[str, str | None]) -> int:
         row = len(self.ids)
@@ -179,52 +185,36 @@ class Rows:
         self.newest = cluster_id if self.newest is None else max(self.newest, cluster_id)
         return row
 
-    def passing(self, f: RowFilter) -> np.ndarray:
-        """The rows that pass the filter (and are still in the database), in no set order.
-        With a time window only its rows are looked at, a slice of the columns kept sorted by
-        time: a day's filter over a million rows costs as that day's rows do, not as all of
-        them, without gathering their columns from rows all over (and they stay in time order:
-        sorting them by row would cost a tenth of scanning them)."""
+    def passing(self, f: RowFilter) -> Selection:
+        """The rows that pass the filter (and are still in the database): the laid-out rows
+        as ranges of their layout, the rows added since as rows. The rows are laid out again
+        when those added since are more than an eighth of those laid out (LAYOUT_TAIL at
+        least): about a second per 8 million rows, paid by the first query after them."""
         n = len(self)
-        if f.after is None and f.before is None:
-            live = self.columns["live"][:n]
-            return np.flatnonzero(live & self._matching(f, self.columns, slice(0, n)))
-        order, columns = self._time_order()
-        first = 0 if f.after is None else np.searchsorted(columns["time"], f.after, "left")
-        end = n if f.before is None else np.searchsorted(columns["time"], f.before, "right")
-        rows = order[first:end]
-        if f.robot or f.region or f.map:
-            rows = rows[self._matching(f, columns, slice(first, end))]
-        return rows[self.columns["live"][rows]]
+        if n - self.layout.count > max(LAYOUT_TAIL, self.layout.count // 8):
+            self.layout = Layout.of(self, n)
+        tail = slice(self.layout.count, n)
+        keep = self.columns["live"][tail] & self._matching(f, tail)
+        times = self.columns["time"][tail]
+        if f.after is not None:
+            keep &= times >= f.after
+        if f.before is not None:
+            keep &= times <= f.before
+        return Selection(self.layout, self.layout.ranges(f, self._codes(f)),
+                         tail.start + np.flatnonzero(keep))
 
-    def _matching(self, f: RowFilter, columns: Mapping[str, np.ndarray], part: slice
-                  ) -> np.ndarray:
-        """Which of the columns' rows in `part` have one of the filter's robots, regions and
-        maps (all, when it names none)."""
+    def _codes(self, f: RowFilter) -> dict[str, set[int]]:
+        """The codes of the filter's robots, regions and maps (those it names)."""
+        return {key: {self._code_of[key][v] for v in getattr(f, key) if v in self._code_of[key]}
+                for key in META[1:] if getattr(f, key)}
+
+    def _matching(self, f: RowFilter, part: slice) -> np.ndarray:
+        """Which of the rows in `part` have one of the filter's robots, regions and maps (all,
+        when it names none)."""
         keep = np.ones(part.stop - part.start, bool)
-        for key in META[1:]:
-            wanted = getattr(f, key)
-            if wanted:
-                codes = {self._code_of[key][v] for v in wanted if v in self._code_of[key]}
-                matched = np.zeros(len(keep), bool)
-                for code in codes:  # a comparison per name: faster than gathering by code
-                    matched |= columns[key][part] == code
-                keep &= matched
+        for key, codes in self._codes(f).items():
+            keep &= matching(self.columns[key][part], codes)
         return keep
-
-    def _time_order(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """The rows sorted by time, and their time, robot, region and map in that order (they
-        never change once stored): the rows added since the last call are merged in (sorting
-        only them), so new clusters cost a copy, not a sort of all."""
-        done, n = len(self._by_time), len(self)
-        if done < n:
-            order = np.argsort(self.columns["time"][done:n], kind="stable")
-            at = np.searchsorted(self._sorted["time"], self.columns["time"][done:n][order],
-                                 "right")
-            self._by_time = np.insert(self._by_time, at, order + done)
-            for key, column in self._sorted.items():
-                self._sorted[key] = np.insert(column, at, self.columns[key][done:n][order])
-        return self._by_time, self._sorted
 
     def save(self, folder: Path) -> None:
         """Write the rows in one file (ids, columns and the names the codes stand for)."""
@@ -240,14 +230,125 @@ class Rows:
                        {key: data[key] for key in COLUMNS}, json.loads(str(data["names"])))
 
 
+class Layout:
+    """The first `count` rows, those still in the database when laid out, sorted by robot,
+    map and time (a position each). A filter's rows are then a range of positions per (robot,
+    map) pair it lets through, its time window's, and the vectors' copies in this order
+    (Vectors.laid) are scanned there as they lie: a robot's day of a million rows in ~1 ms,
+    where gathering the same rows from all over memory took ~2.5."""
+
+    def __init__(self, count: int, order: np.ndarray, columns: Mapping[str, np.ndarray]):
+        self.count = count
+        self.order = order  # position -> row
+        self.columns = columns  # time, robot, region and map, by position
+        self.position = np.full(count, -1, np.int64)  # row -> position (-1: not laid out)
+        self.position[order] = np.arange(len(order))
+        self.live = np.ones(len(order), bool)  # by position: rows removed since are not
+        self.removed = 0
+        robot, map_ = columns["robot"], columns["map"]
+        edges = np.flatnonzero((robot[1:] != robot[:-1]) | (map_[1:] != map_[:-1])) + 1
+        bounds = np.concatenate([[0], edges, [len(order)]]) if len(order) else np.zeros(1, int)
+        self.groups = [(int(robot[begin]), int(map_[begin]), int(begin), int(end))
+                       for begin, end in zip(bounds[:-1], bounds[1:], strict=True)]
+
+    @classmethod
+    def of(cls, rows: Rows, count: int) -> Layout:
+        """The layout of the rows' first `count` rows."""
+        live = np.flatnonzero(rows.columns["live"][:count])
+        order = live[np.lexsort(tuple(rows.columns[key][live]
+                                      for key in ("time", "map", "robot")))]
+        return cls(count, order, {key: rows.columns[key][order] for key in META})
+
+    def at(self, row: int) -> int:
+        """The row's position (-1: not laid out)."""
+        return int(self.position[row]) if row < self.count else -1
+
+    def remove(self, row: int) -> None:
+        position = self.at(row)
+        if position >= 0 and self.live[position]:
+            self.live[position] = False
+            self.removed += 1
+
+    def ranges(self, f: RowFilter, codes: Mapping[str, set[int]]
+               ) -> list[tuple[int, int, np.ndarray | None]]:
+        """The filter's rows (given the codes of the names it asks for): per (robot, map) pair
+        it lets through, the positions of its time window, and which of them pass (None: all):
+        those of its regions and not removed since."""
+        found = []
+        for robot, map_, begin, end in self.groups:
+            if robot not in codes.get("robot", {robot}) or map_ not in codes.get("map", {map_}):
+                continue
+            times = self.columns["time"][begin:end]
+            first = begin + (0 if f.after is None else
+                             int(np.searchsorted(times, f.after, "left")))
+            last = end if f.before is None else begin + int(np.searchsorted(times, f.before,
+                                                                            "right"))
+            if first >= last:
+                continue
+            mask = None
+            if "region" in codes:
+                mask = matching(self.columns["region"][first:last], codes["region"])
+            if self.removed:
+                live = self.live[first:last]
+                mask = live if mask is None else mask & live
+            found.append((first, last, mask))
+        return found
+
+
+@dataclass
+class Selection:
+    """The rows that pass a filter: ranges of a layout's positions (begin, end, and a mask
+    of those that pass or None: all) and rows added since it was made (`added`)."""
+
+    layout: Layout
+    ranges: list[tuple[int, int, np.ndarray | None]]
+    added: np.ndarray
+
+    def __len__(self) -> int:
+        return self.size
+
+    @functools.cached_property
+    def size(self) -> int:
+        return len(self.added) + sum(end - begin if mask is None else int(mask.sum())
+                                     for begin, end, mask in self.ranges)
+
+    def rows(self) -> np.ndarray:
+        """The rows, in no set order."""
+        order = self.layout.order
+        return np.concatenate([*(order[begin:end] if mask is None else order[begin:end][mask]
+                                 for begin, end, mask in self.ranges), self.added])
+
+
+def matching(column: np.ndarray, codes: set[int]) -> np.ndarray:
+    """Which of the column's values are one of the codes (a comparison per code: faster than
+    gathering by code)."""
+    found = np.zeros(len(column), bool)
+    for code in codes:
+        found |= column == code
+    return found
+
+
+@dataclass
+class Laid:
+    """A descriptor's int8 rows, their sizes (scale, norm) and whether each row has the
+    descriptor, in a layout's order; `whole`: all of them have it."""
+
+    layout: Layout
+    steps: np.ndarray
+    sizes: np.ndarray
+    present: np.ndarray
+    whole: bool
+
+
 class Vectors:
-    """One descriptor's vectors, three times: in an HNSW graph (usearch) for the nearest among
+    """One descriptor's vectors, four times: in an HNSW graph (usearch) for the nearest among
     many rows; as a matrix by row for exact scores of a few (a filter's rows, the candidates):
     gathering and multiplying 36,000 rows of a million takes a few milliseconds, fetching as
     many neighbours from the graph ten times that; and that matrix in int8 (a scale per row),
-    for a filter's rows: gathering and multiplying 73,000 rows is the exact search's cost, and
-    int8 rows are a quarter of the bytes with integer products. It is derived from the float32
-    matrix, not saved."""
+    for a filter's rows, twice: by row, for the rows added since the rows were laid out, and in
+    the layout's order (`laid`), where a filter's rows lie in a few ranges: the exact search
+    scans those as they lie, int8 rows are a quarter of the bytes with integer products. The
+    int8 copies are derived from the float32 matrix, not saved."""
 
     def __init__(self, ndim: int, index: Index | None = None, matrix: np.ndarray | None = None,
                  present: np.ndarray | None = None):
@@ -262,30 +363,46 @@ class Vectors:
             block = slice(start, start + QUANTISE_BLOCK)
             self.steps[block], self.sizes[block] = quantised(self.matrix[block])
         self.reach = float(self.sizes[:, 1].max(initial=0))  # the longest vector's norm
+        self._laid: Laid | None = None  # the int8 copy in a layout's order
 
     @property
     def ndim(self) -> int:
         return self.matrix.shape[1]
 
     def add(self, rows: np.ndarray, stack: np.ndarray) -> None:
-        held = len(self.present)
-        if rows.max() >= held:
-            size = max(16, 2 * held, int(rows.max()) + 1)
-            self.matrix = np.resize(self.matrix, (size, self.ndim))
-            self.steps = np.resize(self.steps, (size, self.ndim))
-            self.sizes = np.resize(self.sizes, (size, 2))
-            self.present = np.resize(self.present, size)
-            self.present[held:] = False
+        self._room(int(rows.max()) + 1)
         self.matrix[rows] = stack
         self.steps[rows], self.sizes[rows] = quantised(stack)
         self.reach = max(self.reach, float(self.sizes[rows, 1].max()))
         self.present[rows] = True
         self.index.add(rows.astype(np.uint64), stack)
 
+    def _room(self, rows: int) -> None:
+        """Room for this many rows (those past the rows given so far: not present)."""
+        held = len(self.present)
+        if rows > held:
+            size = max(16, 2 * held, rows)
+            self.matrix = np.resize(self.matrix, (size, self.ndim))
+            self.steps = np.resize(self.steps, (size, self.ndim))
+            self.sizes = np.resize(self.sizes, (size, 2))
+            self.present = np.resize(self.present, size)
+            self.present[held:] = False
+
     def remove(self, row: int) -> None:
         if self.has(np.array([row]))[0]:
             self.present[row] = False
-            self.index.remove(row)
+            self.index.remove(row)  # (the layout's ranges leave a removed row out)
+
+    def laid(self, layout: Layout) -> Laid:
+        """The int8 rows in the layout's order (gathered when the rows are laid out again:
+        ~0.2 s a million)."""
+        if self._laid is None or self._laid.layout is not layout:
+            self._room(int(layout.order.max(initial=-1)) + 1)
+            present = self.present[layout.order]
+            self._laid = Laid(layout, np.take(self.steps, layout.order, axis=0),
+                              np.take(self.sizes, layout.order, axis=0), present,
+                              bool(present.all()))
+        return self._laid
 
     def has(self, rows: np.ndarray) -> np.ndarray:
         """Which of the rows have this descriptor (none past the last row it was given)."""
@@ -309,12 +426,41 @@ class Vectors:
         return out
 
     def best(self, rows: np.ndarray, vector: np.ndarray, count: int) -> np.ndarray:
-        """The `count` rows (of these, which have this descriptor) that score highest in
+        """The `count` rows (of these, which must have this descriptor) that score highest in
         float32, in no order; of rows scoring as the count-th does, the first added. The int8
         copy is scanned; a row whose int8 score could, within its bound, reach the count-th
         best's lowest possible score may be among them, and only those rows are scored again in
         float32: the rows found are the float32 scan's, whatever order the rows come in."""
-        rough = self._rough_scores(rows, vector) if len(rows) > count else None
+        return self._best(rows, vector, count)
+
+    def best_of(self, selection: Selection, vector: np.ndarray, count: int) -> np.ndarray:
+        """best() of a filter's rows that have this descriptor: a range whose rows all pass
+        is scanned in the layout's copy as it lies; of a range with a mask (regions, rows
+        removed, rows without the descriptor) the rows that pass are gathered from there
+        (scanning the whole range and leaving out the rest was slower even when half pass:
+        ~20 ns a row scanned, ~40 a row gathered, plus the masking)."""
+        laid = self.laid(selection.layout)
+        spans, rows = [], []
+        for begin, end, mask in selection.ranges:
+            if not laid.whole:
+                have = laid.present[begin:end]
+                mask = have if mask is None else mask & have
+            positions = selection.layout.order[begin:end]
+            if mask is None:
+                spans.append((laid.steps, laid.sizes, slice(begin, end)))
+                rows.append(positions)
+            else:
+                picked = np.flatnonzero(mask)
+                spans.append((laid.steps, laid.sizes, begin + picked))
+                rows.append(positions[picked])
+        added = selection.added[self.has(selection.added)]
+        spans.append((self.steps, self.sizes, added))
+        return self._best(np.concatenate([*rows, added]), vector, count, spans)
+
+    def _best(self, rows: np.ndarray, vector: np.ndarray, count: int,
+              spans: list[tuple] | None = None) -> np.ndarray:
+        """best(), the rows' int8 copies where the spans say (see _rough_scores)."""
+        rough = self._rough_scores(rows, vector, spans) if len(rows) > count else None
         if rough is not None:
             scores, bounds = rough
             rows = rows[scores + bounds >= _kth_largest(scores - bounds, count)]
@@ -325,36 +471,51 @@ class Vectors:
         above = rows[scores > kth]
         return np.concatenate([above, np.sort(rows[scores == kth])[:count - len(above)]])
 
-    def _rough_scores(self, rows: np.ndarray, vector: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The rows' int8 scores with the vector quantised alike, and how far each may be from
-        its float32 score; None when that cannot be bounded (numkong's int8 sums not exact
-        here, or float32 sums that may overflow: then the scan stays float32).
+    def _rough_scores(self, rows: np.ndarray, vector: np.ndarray,
+                      spans: list[tuple] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The rows' int8 scores with the vector quantised alike, and how far each may be
+        from its float32 score; None when that cannot be bounded (numkong's int8 sums not
+        exact here, or float32 sums that may overflow: then the scan stays float32).
+        `spans` say where the rows' int8 copies are, in the rows' order (default: the copy by
+        row): each (int8 rows, their sizes, which: a slice or positions). Slices are scanned
+        as they lie,
+        positions gathered by np.take (fancy indexing copies int8 rows a value at a time, 2x
+        slower), a block at a time by this thread and the scanners.
         With x ~ s x8 (each value within s/2) and q ~ t q8, the int8 score is s t (q8.x8),
         exact in int32, and |q.x - s t q8.x8| <= |q|_1 s/2 + |q - t q8| (|x| + sqrt(ndim)
-        s/2); float32's own sum is within ndim eps |q| |x| (+ underflow) of q.x. Rows are
-        gathered by np.take: fancy indexing copies rows of int8 a value at a time, 2x slower."""
+        s/2); float32's own sum is within ndim eps |q| |x| (+ underflow) of q.x."""
         query = vector.astype(np.float64)
         length = float(np.linalg.norm(query))
         if not dots_exact(self.ndim) or not length * self.reach < FLOAT32_MAX / 2:
             return None
         steps, (scale, _) = quantised(query)
         packed = numkong.dots_pack(steps[None])
-        scores = np.empty(len(rows))
+        scores, sizes = np.empty(len(rows)), np.empty((len(rows), 2))
+        blocks, at = [], 0
+        for copy, copy_sizes, which in spans or [(self.steps, self.sizes, rows)]:
+            whole = isinstance(which, slice)
+            size = which.stop - which.start if whole else len(which)
+            for start in range(0, size, SCORE_BLOCK):
+                end = min(size, start + SCORE_BLOCK)
+                part = slice(which.start + start, which.start + end) if whole else \
+                    which[start:end]
+                blocks.append((copy, copy_sizes, part, at))
+                at += end - start
 
-        def scan(part: range) -> None:
-            for start in part:
-                block = np.take(self.steps, rows[start:start + SCORE_BLOCK], axis=0)
+        def scan(todo: list[tuple]) -> None:
+            for copy, copy_sizes, part, at in todo:
+                whole = isinstance(part, slice)
+                block = copy[part] if whole else np.take(copy, part, axis=0)
                 found = numkong.dots_packed(block, packed)  # int32, (rows, 1)
-                scores[start:start + len(block)] = np.asarray(found)[:, 0]
+                scores[at:at + len(block)] = np.asarray(found)[:, 0]
+                sizes[at:at + len(block)] = copy_sizes[part] if whole else \
+                    np.take(copy_sizes, part, axis=0)
 
-        starts = range(0, len(rows), SCORE_BLOCK)
-        share = max(1, min(SCAN_THREADS, len(starts)))  # every share-th block to a thread
-        helped = [scanners().submit(scan, starts[i::share]) for i in range(1, share)]
-        scan(starts[::share])
+        share = max(1, min(SCAN_THREADS, len(blocks)))  # every share-th block to a thread
+        helped = [scanners().submit(scan, blocks[i::share]) for i in range(1, share)]
+        scan(blocks[::share])
         for part in helped:
             part.result()
-        sizes = np.take(self.sizes, rows, axis=0)
         scales, norms = sizes[:, 0], sizes[:, 1]
         scores *= scales * scale
         missed = float(np.linalg.norm(query - scale * steps))
@@ -562,16 +723,16 @@ class SimilarityIndex:
             return self._ranked(wanted, np.array(sorted(candidates - excluded), np.int64), k)
 
     def _nearest(self, vectors: Vectors, vector: np.ndarray, count: int,
-                 passing: np.ndarray | None) -> set[int]:
+                 passing: Selection | None) -> set[int]:
         """The `count` rows nearest the vector among those passing (None: all): exactly
         among up to EXACT_ROWS, else from ever more neighbours until enough pass."""
         if passing is not None and len(passing) <= EXACT_ROWS:
-            return set(vectors.best(passing[vectors.has(passing)], vector, count).tolist())
+            return set(vectors.best_of(passing, vector, count).tolist())
         held = len(vectors.index)
         fetch = count * 2 if passing is None else int(count * held / len(passing) * 2)
         if passing is not None:
             allowed = np.zeros(len(self.rows), bool)
-            allowed[passing] = True
+            allowed[passing.rows()] = True
         while held:
             keys = vectors.nearest(vector, fetch)
             if passing is not None:

@@ -260,12 +260,8 @@ class Layout:
                                       for key in ("time", "map", "robot")))]
         return cls(count, order, {key: rows.columns[key][order] for key in META})
 
-    def at(self, row: int) -> int:
-        """The row's position (-1: not laid out)."""
-        return int(self.position[row]) if row < self.count else -1
-
     def remove(self, row: int) -> None:
-        position = self.at(row)
+        position = int(self.position[row]) if row < self.count else -1
         if position >= 0 and self.live[position]:
             self.live[position] = False
             self.removed += 1

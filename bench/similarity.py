@@ -480,8 +480,8 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
                 follower = None if way == "alone" else subprocess.Popen(
                     [sys.executable, __file__, "--follow", store.db.name,
                      str(folder / f"follow-{number}")], stdout=subprocess.PIPE, text=True)
-                if follower:
-                    follower.stdout.readline()  # "following": its index is loaded
+                if follower and follower.stdout.readline().strip() != "following":
+                    raise RuntimeError("the follower did not start (its error is above)")
                 rate.append(added / stored_s(store, generated))
                 if follower:
                     follower.terminate()

@@ -154,6 +154,19 @@ def test_the_index_is_built_saved_loaded_and_caught_up(store, day, tmp_path, mon
     store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
 
 
+def test_the_index_reads_only_the_parts_that_give_descriptors_and_describes_alike(store, day):
+    ids = list(day[1])[:40]
+    whole, parts = store.get_clusters(ids), store.get_clusters(ids, similarity.described_kinds())
+    assert parts.keys() == whole.keys() == set(ids)
+    for cluster_id, cluster in whole.items():
+        read = parts[cluster_id]
+        assert len(read.annotations) < len(cluster.annotations)  # its location, names... left
+        assert read.scene_id == cluster.scene_id
+        described, expected = read.descriptors(), cluster.descriptors()
+        assert described.keys() == expected.keys() and len(expected) >= 4
+        assert all(np.array_equal(described[name], expected[name]) for name in expected)
+
+
 def test_a_refresh_reads_only_the_ids_stored_since_the_last(store, day, tmp_path, monkeypatch):
     monkeypatch.setattr(similarity, "MARGIN", timedelta(0))  # no transaction is open
     newest = store.db[CLUSTERS].find_one(sort=[("_id", -1)])["_id"].generation_time

@@ -53,9 +53,12 @@ import numpy as np
 from bson import ObjectId
 from usearch.index import Index
 
+from percept_memory.converters.registry import aliases_of, name_of, registered_types
+
 from .schema import CLUSTERS, SCENES
 from .settings import Settings
 from .store import MemoryStore
+from .types import Annotation, Hypothesis
 
 log = logging.getLogger(__name__)
 
@@ -606,7 +609,7 @@ class SimilarityIndex:
         """Read and describe these clusters, a chunk at a time, and add them."""
         for start in range(0, len(cluster_ids), CHUNK):
             chunk = cluster_ids[start:start + CHUNK]
-            clusters = self.store.get_clusters(chunk)
+            clusters = self.store.get_clusters(chunk, described_kinds())
             meta = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
                 {"_id": {"$in": list(chunk)}},
                 {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
@@ -760,6 +763,15 @@ class SimilarityIndex:
 
 def _kth_largest(values: np.ndarray, k: int) -> float:
     return np.partition(values, len(values) - k)[len(values) - k]
+
+
+def described_kinds() -> list[str]:
+    """The stored names (aliases too) of the hypothesis and annotation types that give
+    descriptors: a cluster's other parts (most of its twenty) need not be read to index it."""
+    return sorted(name for cls in registered_types().values()
+                  if issubclass(cls, Hypothesis | Annotation)
+                  and cls.descriptors not in (Hypothesis.descriptors, Annotation.descriptors)
+                  for name in (name_of(cls), *aliases_of(cls)))
 
 
 @functools.cache

@@ -345,9 +345,21 @@ class MemoryStore(StoreBase):
             raise NotFound("cluster", cluster_id)
         return docs.decode_cluster(doc, self._blobs([doc]))
 
-    def get_clusters(self, cluster_ids: Sequence[ObjectId]) -> dict[ObjectId, Cluster]:
-        """Several clusters at once, by id (ids not stored are left out)."""
-        found = list(self.clusters.find({"_id": {"$in": list(cluster_ids)}}))
+    def get_clusters(self, cluster_ids: Sequence[ObjectId], kinds: Sequence[str] | None = None
+                     ) -> dict[ObjectId, Cluster]:
+        """Several clusters at once, by id (ids not stored are left out). `kinds`: only their
+        hypotheses and annotations of these stored types are read back (the server leaves the
+        others out, and their blobs are not fetched): a reader that wants a few of a cluster's
+        twenty parts decodes those."""
+        query = {"_id": {"$in": list(cluster_ids)}}
+        if kinds is None:
+            found = list(self.clusters.find(query))
+        else:
+            kept = {part: {"$filter": {"input": f"${part}", "cond": {
+                "$in": ["$$this._type", list(kinds)]}}} for part in ("hypotheses", "annotations")}
+            found = list(self.clusters.aggregate([
+                {"$match": query},
+                {"$project": {"_type": 1, "scene_id": 1, "object_id": 1, **kept}}]))
         blobs = self._blobs(found)
         return {doc["_id"]: docs.decode_cluster(doc, blobs) for doc in found}
 

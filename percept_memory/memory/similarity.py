@@ -197,28 +197,22 @@ class Rows:
         n = len(self)
         if n - self.layout.count > max(LAYOUT_TAIL, self.layout.count // 8):
             self.layout = Layout.of(self, n)
-        tail = slice(self.layout.count, n)
-        keep = self.columns["live"][tail] & self._matching(f, tail)
+        tail, codes = slice(self.layout.count, n), self._codes(f)
+        keep = self.columns["live"][tail].copy()  # (a view: &= would write into it)
+        for key, wanted in codes.items():
+            keep &= matching(self.columns[key][tail], wanted)
         times = self.columns["time"][tail]
         if f.after is not None:
             keep &= times >= f.after
         if f.before is not None:
             keep &= times <= f.before
-        return Selection(self.layout, self.layout.ranges(f, self._codes(f)),
+        return Selection(self.layout, self.layout.ranges(f, codes),
                          tail.start + np.flatnonzero(keep))
 
     def _codes(self, f: RowFilter) -> dict[str, set[int]]:
         """The codes of the filter's robots, regions and maps (those it names)."""
         return {key: {self._code_of[key][v] for v in getattr(f, key) if v in self._code_of[key]}
                 for key in META[1:] if getattr(f, key)}
-
-    def _matching(self, f: RowFilter, part: slice) -> np.ndarray:
-        """Which of the rows in `part` have one of the filter's robots, regions and maps (all,
-        when it names none)."""
-        keep = np.ones(part.stop - part.start, bool)
-        for key, codes in self._codes(f).items():
-            keep &= matching(self.columns[key][part], codes)
-        return keep
 
     def save(self, folder: Path) -> None:
         """Write the rows in one file (ids, columns and the names the codes stand for)."""

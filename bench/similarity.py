@@ -36,9 +36,11 @@
    next asked, memory/similarity.py); what it costs instead is the catch-up, measured here as
    the refresh after storing synthetic scenes in process, as the slowdown ingest would see if
    that work were done inline, and as the slowdown ingest does see while another process
-   keeps an index of the same database current and asks it for more like the newest cluster
-   twice a second (a user browsing a server as a robot stores scenes; --rounds of storing
-   alone and beside it, alternating, each on a fresh database). Meaning search does
+   keeps an index of the same database current as `pmem serve` does (its keeper's thread, at
+   PMEM_SIMILARITY_NICENESS) and asks it for more like the newest cluster twice a second (a
+   user browsing a server as a robot stores scenes; --rounds of storing alone and beside it,
+   alternating, each on a fresh database), with what those queries saw: their time and how
+   many stored clusters they could not search yet. Meaning search does
    no ingest work either: its word vectors are computed when a query first meets a word.
    The ORB visual words of a 64 px crop (crop-orb) are timed alone, and what they would cost
    ingest if computed there (they are not: the index computes them as it catches up, the
@@ -52,6 +54,7 @@ Usage: python bench/similarity.py [--days N] [--every N] [--vectors N] [--cluste
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import resource
@@ -75,7 +78,7 @@ from percept_memory.demo import kitchen_week
 from percept_memory.ingest.robosherlock import read_dump
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory import similarity
-from percept_memory.memory.schema import TERMS
+from percept_memory.memory.schema import CLUSTERS, TERMS
 from percept_memory.memory.search_keys import trigrams
 from percept_memory.memory.settings import Settings, collect_less
 from percept_memory.memory.similarity import Entry, RowFilter, SimilarityIndex
@@ -408,11 +411,11 @@ def through_mongodb(count: int, folder: Path, keep: str | None, queries: int = 2
 
 
 def scale_latency(store: MemoryStore, index: SimilarityIndex, queries: int) -> dict:
-    """Per descriptor and filter: p50/p95 of similar_to (refresh, start read from MongoDB,
-    search, hits read back) and p95 of the index's search alone, from `queries` stored
-    clusters."""
+    """Per descriptor and filter: p50/p95 of similar_to as a server answers it (its keeper's
+    thread asked to catch up, start read from MongoDB, search, hits read back) and p95 of the
+    index's search alone, from `queries` stored clusters."""
     rng = np.random.default_rng(3)
-    search = Similarity(store, index=index)
+    search = Similarity(store, index=index, in_background=True)
     starts = [index.rows.ids[i] for i in rng.integers(len(index.rows), size=queries)]
     day = {"after": WEEK_START + 2 * DAY, "before": WEEK_START + 3 * DAY - 1}
     filters = {"unfiltered": {}, "region_and_day": {"region": ["table"], **day},
@@ -437,6 +440,7 @@ def scale_latency(store: MemoryStore, index: SimilarityIndex, queries: int) -> d
                 "similar_to_p95_ms": round(float(np.percentile(took, 95)) * 1e3, 2),
                 "index_search_p50_ms": round(float(np.percentile(alone, 50)) * 1e3, 2),
                 "index_search_p95_ms": round(float(np.percentile(alone, 95)) * 1e3, 2)}
+    search.close()
     return latency
 
 
@@ -474,6 +478,7 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
         index.refresh()
         again_s = time.perf_counter() - start
     rates: dict[str, list[float]] = {"alone": [], "beside_queries": []}
+    asked: list[dict] = []  # the follower's queries while scenes were stored
     for number in range(rounds):
         for way, rate in rates.items():
             with scratch_store() as store:
@@ -485,9 +490,12 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
                 rate.append(added / stored_s(store, generated))
                 if follower:
                     follower.terminate()
-                    follower.wait(30)
+                    asked += [json.loads(line) for line in follower.communicate(timeout=30)[0]
+                              .splitlines()]
     slowdown = 1 - statistics.median(rates["beside_queries"]) / statistics.median(
         rates["alone"])
+    waits = [q["ms"] for q in asked]
+    behind = [q["not_indexed_yet"] for q in asked]
     inline = refresh_s / ingest_s
     orb_s = visual_words["p50_us"] * len(crops) / 1e6
     return {"scenes": count, "clusters": added, "rounds": rounds,
@@ -495,6 +503,14 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
                                       for way, rate in rates.items()},
             "ingest_slowdown_beside_queries": round(slowdown, 3),
             "target_slowdown": SLOWDOWN_TARGET, "met": slowdown <= SLOWDOWN_TARGET,
+            "keeper_niceness": Settings().similarity_niceness,
+            "queries_during_ingest": {  # what the follower's user saw meanwhile
+                "count": len(asked),
+                "ms": {"p50": round(float(np.percentile(waits, 50)), 1),
+                       "p95": round(float(np.percentile(waits, 95)), 1)} if asked else None,
+                "share_not_current": round(float(np.mean(np.array(behind) > 0)), 2)
+                if asked else None,
+                "not_indexed_yet_max": max(behind, default=None)},
             "visual_words_per_64px_crop": visual_words,
             "visual_words_slowdown_if_at_ingest": round(orb_s / ingest_s, 3),
             "visual_words_share_of_catch_up": round(orb_s / refresh_s, 3),
@@ -515,16 +531,22 @@ def stored_s(store: MemoryStore, generated: list[Scene]) -> float:
 
 
 def follow(db: str, folder: str) -> None:
-    """(--follow) A user browsing while scenes are stored: an index of the database kept
-    current and asked for more like the newest cluster twice a second, until terminated."""
-    store = MemoryStore.open(Settings(db=db))
-    search = Similarity(store, index=SimilarityIndex(store, Path(folder)))
+    """(--follow) A user browsing a server while scenes are stored: its index kept current as
+    `pmem serve` keeps it and asked for more like the newest cluster twice a second, until
+    terminated; a line of JSON per query (its time, the clusters it could not search yet)."""
+    settings = Settings(db=db)
+    store = MemoryStore.open(settings)
+    search = Similarity(store, settings, SimilarityIndex(store, Path(folder)),
+                        in_background=True)
     search.index.refresh()
     print("following", flush=True)
     while True:
-        search.index.refresh()
-        if search.index.rows.newest is not None:
-            search.similar_to(cluster=search.index.rows.newest, k=10)
+        newest = store.db[CLUSTERS].find_one({}, {"_id": 1}, sort=[("_id", -1)])
+        if newest is not None:
+            start = time.perf_counter()
+            page = search.similar_to(cluster=newest["_id"], k=10)
+            print(json.dumps({"ms": (time.perf_counter() - start) * 1e3,
+                              "not_indexed_yet": page.not_indexed_yet}), flush=True)
         time.sleep(0.5)
 
 
@@ -545,7 +567,8 @@ def main() -> None:
         "clusters when it holds fewer; the index built only when it has none)"))
     parser.add_argument("--only", nargs="+", choices=PARTS, default=PARTS,
                         help="run only these parts")
-    parser.add_argument("--scenes", type=int, default=300)
+    parser.add_argument("--scenes", type=int, default=1000,
+                        help="ingest: scenes stored per round (6 clusters each)")
     parser.add_argument("--words", type=int, default=50_000,
                         help="words added to the vocabulary to see what a large one costs")
     parser.add_argument("--rounds", type=int, default=3,

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import re
+import sys
+import threading
 import time
 from collections import Counter
 from datetime import UTC, datetime, timedelta
@@ -23,6 +26,7 @@ from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest import backends
 from percept_memory.memory import similarity
+from percept_memory.memory.index_keeper import IndexKeeper
 from percept_memory.memory.schema import CLUSTERS, OUTBOX, SCENES
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
@@ -260,6 +264,55 @@ def test_filters_hold_whether_searched_exactly_or_approximately(store, day, tmp_
     assert index.search(query, 10, RowFilter(robot=["nobody"])) == []
 
 
+def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path):
+    index = SimilarityIndex(store, tmp_path / "index")
+    keeper = IndexKeeper(index, niceness=19)
+    before = set(threading.enumerate())
+    try:
+        assert keeper.current(timeout=60) == 0
+        assert index.rows.live_count() == store.db[CLUSTERS].count_documents({})
+        if sys.platform == "linux":  # the thread's own niceness; the process keeps its own
+            assert os.getpriority(os.PRIO_PROCESS, keeper.native_id) == 19
+            assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) < 19
+    finally:
+        keeper.stop()
+    assert set(threading.enumerate()) <= before
+
+
+def test_a_search_answers_while_the_keeper_is_still_describing(store, day, settings, tmp_path,
+                                                              monkeypatch):
+    """A burst of ingest the keeper has not described yet: the search waits for it at most
+    similarity_wait_s, then searches what is indexed, says how many it could not, and can
+    start from a cluster not indexed yet; the index is not held while clusters are described."""
+    index = SimilarityIndex(store, tmp_path / "index")
+    ids = store.db[CLUSTERS].distinct("_id")
+    index.add(index.described(ids[: len(ids) // 2]))  # the rest is the burst
+    release = threading.Event()
+    describe = index.described
+
+    def held_back(cluster_ids):
+        if threading.current_thread().name == "pmem-similarity":
+            release.wait(60)
+        return describe(cluster_ids)
+
+    monkeypatch.setattr(index, "described", held_back)
+    search = Similarity(store, settings.model_copy(update={"similarity_wait_s": 0.3}), index,
+                        in_background=True)
+    try:
+        start = time.monotonic()
+        page = search.similar_to(cluster=ids[-1], k=5)  # a cluster of the burst
+        assert time.monotonic() - start < 5
+        assert page.not_indexed_yet == len(ids) - len(ids) // 2
+        assert len(page.items) == 5 and {h.id for h in page.items} <= set(ids[: len(ids) // 2])
+        release.set()
+        page = search.similar_to(cluster=ids[-1], k=5)
+        assert page.not_indexed_yet == 0
+        assert index.rows.live_count() == len(ids)
+    finally:
+        release.set()
+        search.close()
+
+
 def test_the_same_item_comes_first(store, day, settings):
     """Precision at 5 of "same item" from every cluster of the day (the bench measures it
     over the week per descriptor: bench/similarity.py)."""
@@ -291,6 +344,7 @@ def test_the_api_finds_more_like_a_cluster_an_object_and_an_image(client, store,
     assert answer.status_code == 200, answer.text
     body = answer.json()
     assert body["start"] == str(start) and "crop-colour" in body["descriptors"]
+    assert body["not_indexed_yet"] == 0
     assert len(body["items"]) == 4 and all(h["region"] == "shelf" for h in body["items"])
     assert all(item[ObjectId(h["id"])] == "corn_flakes" for h in body["items"])
     assert body["items"][0]["similarity"] >= body["items"][-1]["similarity"]
@@ -350,6 +404,29 @@ def test_a_filter_on_an_unknown_descriptor_names_those_there_are(client, day):
                                                 "descriptor": "colour"})
     assert answer.status_code == 422
     assert "crop-colour" in answer.json()["error"]["message"]
+
+
+def test_the_page_says_what_it_could_not_search_yet_and_the_app_stops_its_keeper(
+        store, day, settings, tmp_path, monkeypatch):
+    release = threading.Event()
+    describe = SimilarityIndex.described
+
+    def held_back(self, cluster_ids):
+        if threading.current_thread().name == "pmem-similarity":
+            release.wait(60)
+        return describe(self, cluster_ids)
+
+    monkeypatch.setattr(SimilarityIndex, "described", held_back)
+    before = set(threading.enumerate())
+    app = create_app(store, settings.model_copy(update={"similarity_wait_s": 0.2,
+                                                        "data_dir": tmp_path}))
+    with TestClient(app, base_url=LOCAL) as client:
+        answer = client.get("/similar", params={"cluster": str(next(iter(day[1])))})
+        release.set()
+    assert answer.status_code == 200
+    clusters = store.db[CLUSTERS].count_documents({})
+    assert f"{clusters} observations were stored too recently to be searched" in answer.text
+    assert set(threading.enumerate()) <= before  # the app's keeper ended with it
 
 
 def test_pmem_query_similar(settings, day, mongo_uri, db_name, tmp_path):

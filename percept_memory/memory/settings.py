@@ -159,6 +159,16 @@ class Settings(BaseSettings):
         default=10.0, ge=0, le=300,
         description="PMEM_BELIEF_WAIT_S: longest wait of POST /api/scenes?wait=belief",
     )
+    similarity_niceness: int = Field(
+        default=10, ge=0, le=19,
+        description="PMEM_SIMILARITY_NICENESS: CPU niceness of the web app's thread that keeps "
+                    "the similarity index current, so that it gives way to ingest",
+    )
+    similarity_wait_s: float = Field(
+        default=1.0, ge=0, le=60,
+        description="PMEM_SIMILARITY_WAIT_S: longest wait of a similarity search in the web "
+                    "app for that thread to catch up (then it searches what is indexed)",
+    )
 
 
 def settings_help() -> str:

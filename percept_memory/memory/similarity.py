@@ -29,7 +29,9 @@ after a burst of ingest, every query would read the burst's last margin of ids a
 2,200 clusters/s) until the next cluster is stored. When the count of clusters still differs
 (ids older than the margin, clusters removed) it compares every id with MongoDB's and adds or
 removes the difference. Storing a scene does
-no index work at all; the first query after a burst of ingest pays for it.
+no index work at all: the first query after a burst of ingest pays for it, or, in a server, the
+keeper's thread does, at a lower CPU priority (index_keeper.py). Searches go on while a catch-up
+reads and describes clusters: the index is held only to add them, a chunk at a time.
 """
 
 from __future__ import annotations
@@ -69,8 +71,8 @@ FORMAT = 2  # of the folder's files: another number means rebuild
 # stored in it.
 MARGIN = timedelta(seconds=10)
 EXPANSION_SEARCH = 128  # usearch's default 64 finds half the true 10 nearest of random data
-CHUNK = 500  # clusters read and described at a time
-PROGRESS_EVERY = 100  # chunks: a build from a large database logs how far it is
+CHUNK = 100  # clusters read and described, then added, at a time (~0.15 s of CPU)
+PROGRESS_EVERY = 500  # chunks: a build from a large database logs how far it is
 # When a filter passes at most this many rows they are searched exactly. Exact is always right,
 # a filtered graph search is not: the nearest rows passing a narrow filter are often far, where
 # the graph finds few of them (a robot and a day, 7 % of a million rows: the true top 10 for 1
@@ -115,6 +117,11 @@ class Entry:
     region: str | None
     map: str | None
     descriptors: Mapping[str, np.ndarray]
+
+    def vectors(self) -> dict[str, np.ndarray]:
+        """Its descriptors that can be indexed (those with a value not finite are left out)."""
+        return {name: vector for name, vector in self.descriptors.items()
+                if np.all(np.isfinite(vector))}
 
 
 @dataclass(frozen=True)
@@ -543,7 +550,8 @@ class SimilarityIndex:
     def __init__(self, store: MemoryStore, folder: Path):
         self.store = store
         self.folder = folder
-        self.lock = threading.RLock()
+        self.lock = threading.RLock()  # held to change the rows and vectors, or search them
+        self.upkeep = threading.Lock()  # one catch-up at a time
         self.rows = Rows()
         self.vectors: dict[str, Vectors] = {}
         self.unsaved = 0
@@ -562,17 +570,24 @@ class SimilarityIndex:
         round trips (the new ids, the count), not one: asking both in one aggregate (the ids
         $unionWith a $collStats count) crashed mongod 6.0.5 when the union ran in a getMore
         (a segfault serialising the union's pipeline), and would have saved ~0.3 ms."""
-        with self.lock:
+        with self.upkeep:
             if not self._loaded:
-                self.load()
+                with self.lock:
+                    self.load()
             changed = self._add(self._recent_unknown())
             clusters = self.store.db[CLUSTERS].estimated_document_count()
             if clusters != self.rows.live_count():
                 changed += self._reconcile()
-            self.unsaved += changed
-            if self.unsaved >= SAVE_EVERY or (self.unsaved and not self._saved_once()):
-                self.save()
+            with self.lock:
+                self.unsaved += changed
+                if self.unsaved >= SAVE_EVERY or (self.unsaved and not self._saved_once()):
+                    self.save()
             return changed
+
+    def behind(self) -> int:
+        """How many stored clusters the index lacks (from MongoDB's count of them)."""
+        return max(0, self.store.db[CLUSTERS].estimated_document_count()
+                   - self.rows.live_count())
 
     def _recent_unknown(self) -> list[ObjectId]:
         """The clusters stored since the last read (since the newest id held, after a load),
@@ -590,10 +605,11 @@ class SimilarityIndex:
         stored = set(self._ids({}))
         live = self.rows.columns["live"]
         gone = [row for row, oid in enumerate(self.rows.ids) if live[row] and oid not in stored]
-        for row in gone:
-            self.rows.remove(row)
-            for vectors in self.vectors.values():
-                vectors.remove(row)
+        with self.lock:
+            for row in gone:
+                self.rows.remove(row)
+                for vectors in self.vectors.values():
+                    vectors.remove(row)
         missing = sorted(i for i in stored if not self.rows.holds(i))
         log.info("similarity: %d clusters missing from the index, %d gone", len(missing),
                  len(gone))
@@ -603,21 +619,26 @@ class SimilarityIndex:
         """Read and describe these clusters, a chunk at a time, and add them."""
         for start in range(0, len(cluster_ids), CHUNK):
             chunk = cluster_ids[start:start + CHUNK]
-            clusters = self.store.get_clusters(chunk, described_kinds())
-            meta = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
-                {"_id": {"$in": list(chunk)}},
-                {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
-            maps = {d["_id"]: d.get("map") for d in self.store.db[SCENES].find(
-                {"_id": {"$in": [d.get("scene_id") for d in meta.values()]}}, {"map": 1})}
-            self.add(Entry(cluster_id, search.get("time", 0), search.get("robot"),
-                           search.get("region"), maps.get(meta[cluster_id].get("scene_id")),
-                           cluster.descriptors())
-                     for cluster_id, cluster in clusters.items()
-                     for search in [meta[cluster_id].get("search", {})])
+            self.add(self.described(chunk))
             if start // CHUNK % PROGRESS_EVERY == PROGRESS_EVERY - 1:
                 log.info("similarity: %d of %d clusters indexed", start + len(chunk),
                          len(cluster_ids))
         return len(cluster_ids)
+
+    def described(self, cluster_ids: Sequence[ObjectId]) -> list[Entry]:
+        """These clusters (those stored) read from MongoDB and described, without holding the
+        index: searches go on meanwhile."""
+        clusters = self.store.get_clusters(cluster_ids, described_kinds())
+        meta = {d["_id"]: d for d in self.store.db[CLUSTERS].find(
+            {"_id": {"$in": list(cluster_ids)}},
+            {"scene_id": 1, "search.time": 1, "search.robot": 1, "search.region": 1})}
+        maps = {d["_id"]: d.get("map") for d in self.store.db[SCENES].find(
+            {"_id": {"$in": [d.get("scene_id") for d in meta.values()]}}, {"map": 1})}
+        return [Entry(cluster_id, search.get("time", 0), search.get("robot"),
+                      search.get("region"), maps.get(meta[cluster_id].get("scene_id")),
+                      cluster.descriptors())
+                for cluster_id, cluster in clusters.items()
+                for search in [meta[cluster_id].get("search", {})]]
 
     def add(self, entries: Iterable[Entry]) -> None:
         """Add clusters with their descriptors (non-finite vectors are left out)."""
@@ -627,11 +648,10 @@ class SimilarityIndex:
             for entry in entries:
                 row = self.rows.add(entry.cluster_id, entry.time, {
                     "robot": entry.robot, "region": entry.region, "map": entry.map})
-                for name, vector in entry.descriptors.items():
-                    if np.all(np.isfinite(vector)):
-                        keys, stack = vectors.setdefault(name, ([], []))
-                        keys.append(row)
-                        stack.append(vector)
+                for name, vector in entry.vectors().items():
+                    keys, stack = vectors.setdefault(name, ([], []))
+                    keys.append(row)
+                    stack.append(vector)
             for name, (keys, stack) in vectors.items():
                 if name not in self.vectors:
                     self.vectors[name] = Vectors(stack[0].size)

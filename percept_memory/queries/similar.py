@@ -5,7 +5,9 @@ observation, or an uploaded PNG/JPEG crop) and what may be found (robots, region
 time window); the answer ranks clusters by their mean similarity over the descriptors both
 sides have (each a cosine of unit vectors, memory/types/appearance.py), with each
 descriptor's own. The vector search is memory/similarity.py's index, brought up to date with
-MongoDB before each answer.
+MongoDB before each answer: here, or in a server by its keeper's thread (memory/index_keeper.py),
+waited for at most settings.similarity_wait_s (the answer says how many stored clusters were
+not indexed yet when it had to stop waiting).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pydantic import BaseModel, BeforeValidator, Field, StringConstraints, model
 from percept_memory.converters import ConversionError
 from percept_memory.converters.images import decode_file
 from percept_memory.memory.errors import NotFound
+from percept_memory.memory.index_keeper import IndexKeeper
 from percept_memory.memory.schema import CLUSTERS
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.similarity import RowFilter, SimilarityIndex
@@ -77,20 +80,36 @@ class SimilarPage(BaseModel):
     start: str  # the cluster compared with (the object's latest), or "image"
     descriptors: list[str]  # those of the start the search used
     items: list[SimilarHit]
+    # stored clusters the search could not look at: the index was still catching up with a
+    # burst of ingest when the wait for it ended (0: every stored cluster was searched)
+    not_indexed_yet: int = 0
 
 
 class Similarity:
-    """similar_to on a store, with its index in the settings' data directory."""
+    """similar_to on a store, with its index in the settings' data directory, caught up by
+    each query, or `in_background` by a keeper's thread (a server's: close() ends it)."""
 
     def __init__(self, store: MemoryStore, settings: Settings | None = None,
-                 index: SimilarityIndex | None = None):
+                 index: SimilarityIndex | None = None, in_background: bool = False):
+        settings = settings or Settings()
         self.store = store
-        self.index = index or SimilarityIndex.of(store, settings or Settings())
+        self.index = index or SimilarityIndex.of(store, settings)
+        self.keeper = IndexKeeper(self.index, settings.similarity_niceness) \
+            if in_background else None
+        self.wait_s = settings.similarity_wait_s
+
+    def close(self) -> None:
+        if self.keeper is not None:
+            self.keeper.stop()
 
     def similar_to(self, query: SimilarQuery | None = None, **fields: Any) -> SimilarPage:
         """The k clusters that look most like the start, best first."""
         query = query or SimilarQuery.model_validate(fields)
-        self.index.refresh()
+        if self.keeper is None:
+            self.index.refresh()
+            not_indexed = 0
+        else:
+            not_indexed = self.keeper.current(self.wait_s)
         start, vectors = self._start(query)
         if query.descriptor:
             unknown = sorted(set(query.descriptor) - set(self.index.names()))
@@ -110,7 +129,8 @@ class Similarity:
         items = [SimilarHit.of(docs[m.cluster_id], similarity=m.similarity,
                                descriptors=m.descriptors)
                  for m in matches if m.cluster_id in docs]
-        return SimilarPage(start=str(start), descriptors=sorted(vectors), items=items)
+        return SimilarPage(start=str(start), descriptors=sorted(vectors), items=items,
+                           not_indexed_yet=not_indexed)
 
     def _start(self, query: SimilarQuery) -> tuple[Any, dict]:
         if query.image is not None:
@@ -121,11 +141,13 @@ class Similarity:
             if not seen:
                 raise NotFound("object", query.object)
             cluster_id = seen[0].cluster_id
-        # The index, just caught up, knows the stored clusters: MongoDB is asked only of others.
-        if not self.index.holds(cluster_id) and \
-                self.store.db[CLUSTERS].find_one({"_id": cluster_id}, {"_id": 1}) is None:
+        if self.index.holds(cluster_id):
+            return cluster_id, self.index.descriptors_of(cluster_id)
+        # not indexed (yet: the keeper may still be catching up), or not stored
+        described = self.index.described([cluster_id])
+        if not described:
             raise NotFound("cluster", cluster_id)
-        return cluster_id, self.index.descriptors_of(cluster_id)
+        return cluster_id, described[0].vectors()
 
 
 def image_descriptors(encoded: str) -> dict:

@@ -26,6 +26,7 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Scene
 from percept_memory.queries.engine import QueryEngine
+from percept_memory.queries.similar import Similarity
 
 from . import curation, review, similar
 from .catalogue import catalogue_router
@@ -47,8 +48,10 @@ from .scene3d import cloud_router
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     """The app on a store; one IngestService serves every write. The app runs the memory
-    pipeline in a thread while it serves (unless settings.consolidator is off)."""
+    pipeline in a thread while it serves (unless settings.consolidator is off), and keeps its
+    similarity index current in another from the first similarity search on."""
     pipeline = memory_pipeline(store, settings)
+    similarity = Similarity(store, settings, in_background=True)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -58,6 +61,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             yield
         finally:
             pipeline.stop()
+            similarity.close()
             service.close()
 
     app = FastAPI(
@@ -147,7 +151,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(export_router(store, settings))
     app.include_router(cloud_router(store))
     app.include_router(catalogue_router(store))
-    app.include_router(similar.routes(store, settings))
+    app.include_router(similar.routes(store, similarity))
     app.include_router(curation.routes(store, settings))
     app.include_router(review.routes(store))
 

@@ -18,7 +18,6 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException
 
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params
@@ -37,8 +36,7 @@ from .search import with_crops
 MAX_BODY = MAX_IMAGE_BYTES * 4 // 3 + 64 * 1024  # the crop in base64 and the rest
 
 
-def routes(store: MemoryStore, settings: Settings) -> APIRouter:
-    similarity = Similarity(store, settings)
+def routes(store: MemoryStore, similarity: Similarity) -> APIRouter:
     router = APIRouter()
 
     def answered(query: SimilarQuery) -> SimilarPage:

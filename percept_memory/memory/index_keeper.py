@@ -2,14 +2,15 @@
 that describing the clusters a robot stores gives way to the storing itself.
 
 Describing a cluster (its crop decoded, ORB, gradients, colour; its vectors put in the graphs)
-costs more CPU than storing it: bench/similarity.py catches up ~550-800 clusters a second where
-~1,100-1,500 are stored. On two cores, done at the same priority beside a robot storing scenes,
-it slowed the storing by 15-20 %; at niceness 10 or 19, by ~1 % (README). The price is
-freshness during a burst of ingest: a query waits at most a second for the keeper (`current`),
-then searches what is indexed and says how many stored clusters it could not look at yet. When
-the cores are not saturated the keeper has the idle CPU, and a query finds the index current.
-Niceness 10, as `pmem worker`'s: at 19 a robot's own busy perception would leave it ~1.5 % of a
-core. Linux gives each thread its own niceness; elsewhere the keeper runs at the process's.
+costs more CPU than storing it: bench/similarity.py catches up ~450-650 clusters a second where
+~1,100-1,400 are stored. On two cores, done at the same priority beside a robot storing scenes,
+it slowed the storing by 11-20 %; at niceness 10 by ~10 % (the share of a core that niceness
+still gets); at 19 not measurably (README). The price is freshness during a burst of ingest: a
+query waits at most a second for the keeper (`current`), then searches what is indexed and says
+how many stored clusters it could not look at yet. When the cores are not saturated the keeper
+has the idle CPU and a query finds the index current; when other work at normal priority keeps
+them busy for long, niceness 19 leaves it ~1.5 % of a core (PMEM_SIMILARITY_NICENESS trades
+that back). Linux gives each thread its own niceness; elsewhere the keeper runs at the process's.
 """
 
 from __future__ import annotations

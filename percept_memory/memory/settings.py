@@ -160,7 +160,7 @@ class Settings(BaseSettings):
         description="PMEM_BELIEF_WAIT_S: longest wait of POST /api/scenes?wait=belief",
     )
     similarity_niceness: int = Field(
-        default=10, ge=0, le=19,
+        default=19, ge=0, le=19,
         description="PMEM_SIMILARITY_NICENESS: CPU niceness of the web app's thread that keeps "
                     "the similarity index current, so that it gives way to ingest",
     )

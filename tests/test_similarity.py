@@ -279,6 +279,26 @@ def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path)
     assert set(threading.enumerate()) <= before
 
 
+def test_a_keeper_that_fails_to_catch_up_keeps_trying(store, day, tmp_path, monkeypatch, caplog):
+    index = SimilarityIndex(store, tmp_path / "index")
+    refresh, failures = index.refresh, []
+
+    def fails_once():
+        if not failures:
+            failures.append(1)
+            raise RuntimeError("a cluster that does not decode")
+        return refresh()
+
+    monkeypatch.setattr(index, "refresh", fails_once)
+    keeper = IndexKeeper(index, niceness=19, poll_s=0.05)
+    try:
+        assert keeper.current(timeout=0.01) > 0  # the first catch-up failed
+        assert keeper.current(timeout=60) == 0
+    finally:
+        keeper.stop()
+    assert "could not catch up" in caplog.text and "does not decode" in caplog.text
+
+
 def test_a_search_answers_while_the_keeper_is_still_describing(store, day, settings, tmp_path,
                                                               monkeypatch):
     """A burst of ingest the keeper has not described yet: the search waits for it at most

@@ -20,7 +20,7 @@ import os
 import sys
 import threading
 
-from pymongo.errors import InvalidOperation, PyMongoError
+from pymongo.errors import InvalidOperation
 
 from .similarity import SimilarityIndex
 
@@ -79,8 +79,8 @@ class IndexKeeper:
                 self.index.refresh()
             except InvalidOperation:  # the store was closed: nothing is left to keep current
                 return
-            except PyMongoError as error:
-                log.warning("similarity: the database is not answering (%s); retrying", error)
+            except Exception:  # a database outage, a cluster that fails to decode: kept trying
+                log.exception("similarity: the index could not catch up; retrying")
                 self._stopping.wait(self.poll_s)
                 continue
             with self._changed:

@@ -279,6 +279,34 @@ def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path)
     assert set(threading.enumerate()) <= before
 
 
+def test_the_files_are_written_in_proportion_and_when_the_keeper_stops(store, day, tmp_path,
+                                                                      monkeypatch):
+    monkeypatch.setattr(similarity, "SAVE_EVERY", 1)  # the share decides
+    index = SimilarityIndex(store, tmp_path / "index")
+    keeper = IndexKeeper(index, niceness=19)
+    stored = store.put_scenes(kitchen_week.generate(days=1, seed=7).scenes[:2])
+    ids = [c for s in stored for c in s.cluster_ids]
+    try:
+        assert keeper.current(timeout=60) == 0
+        assert index.unsaved == 0  # the first catch-up is written at once
+        newer = store.put_scenes(kitchen_week.generate(days=1, seed=8).scenes[:2])
+        ids += [c for s in newer for c in s.cluster_ids]
+        stored += newer
+        assert keeper.current(timeout=60) == 0
+        added = sum(len(s.cluster_ids) for s in newer)
+        assert added < len(index.rows) // similarity.SAVE_SHARE
+        assert index.unsaved == added  # fewer than an eighth of the rows: not written yet
+        keeper.stop()
+        again = SimilarityIndex(store, tmp_path / "index")
+        again.load()
+        assert all(again.rows.holds(i) for i in ids)  # written as the keeper stopped
+    finally:
+        keeper.stop()
+        for collection in (SCENES, OUTBOX):  # the other tests know the day's scenes only
+            store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
+        store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
+
+
 def test_a_keeper_that_fails_to_catch_up_keeps_trying(store, day, tmp_path, monkeypatch, caplog):
     index = SimilarityIndex(store, tmp_path / "index")
     refresh, failures = index.refresh, []

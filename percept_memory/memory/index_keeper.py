@@ -61,7 +61,8 @@ class IndexKeeper:
         return self.index.behind()
 
     def stop(self) -> None:
-        """End the thread after the catch-up under way (waiting at most JOIN_S for it)."""
+        """End the thread after the catch-up under way (waiting at most JOIN_S for it), the
+        index saved."""
         self._stopping.set()
         with self._changed:
             self._changed.notify_all()
@@ -88,6 +89,8 @@ class IndexKeeper:
                 self._changed.notify_all()
                 if self._asked == ticket and not self._stopping.is_set():
                     self._changed.wait(self.poll_s)  # until asked, stopped or the poll
+        if self.index.unsaved:  # what was added since the last save is not described again
+            self.index.save()
 
 
 def lower_priority(thread_id: int, niceness: int) -> None:

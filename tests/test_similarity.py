@@ -264,10 +264,14 @@ def test_filters_hold_whether_searched_exactly_or_approximately(store, day, tmp_
     assert index.search(query, 10, RowFilter(robot=["nobody"])) == []
 
 
+def keepers() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if t.name == "pmem-similarity"}
+
+
 def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path):
     index = SimilarityIndex(store, tmp_path / "index")
     keeper = IndexKeeper(index, niceness=19)
-    before = set(threading.enumerate())
+    before = keepers()
     try:
         assert keeper.current(timeout=60) == 0
         assert index.rows.live_count() == store.db[CLUSTERS].count_documents({})
@@ -276,7 +280,7 @@ def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path)
             assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) < 19
     finally:
         keeper.stop()
-    assert set(threading.enumerate()) <= before
+    assert keepers() <= before
 
 
 def test_the_files_are_written_in_proportion_and_when_the_keeper_stops(store, day, tmp_path,
@@ -465,7 +469,7 @@ def test_the_page_says_what_it_could_not_search_yet_and_the_app_stops_its_keeper
         return describe(self, cluster_ids)
 
     monkeypatch.setattr(SimilarityIndex, "described", held_back)
-    before = set(threading.enumerate())
+    before = keepers()
     app = create_app(store, settings.model_copy(update={"similarity_wait_s": 0.2,
                                                         "data_dir": tmp_path}))
     with TestClient(app, base_url=LOCAL) as client:
@@ -474,7 +478,7 @@ def test_the_page_says_what_it_could_not_search_yet_and_the_app_stops_its_keeper
     assert answer.status_code == 200
     clusters = store.db[CLUSTERS].count_documents({})
     assert f"{clusters} observations were stored too recently to be searched" in answer.text
-    assert set(threading.enumerate()) <= before  # the app's keeper ended with it
+    assert keepers() <= before  # the app's keeper ended with it
 
 
 def test_pmem_query_similar(settings, day, mongo_uri, db_name, tmp_path):

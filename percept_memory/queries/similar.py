@@ -80,9 +80,9 @@ class SimilarPage(BaseModel):
     start: str  # the cluster compared with (the object's latest), or "image"
     descriptors: list[str]  # those of the start the search used
     items: list[SimilarHit]
-    # stored clusters the search could not look at: the index was still catching up with a
-    # burst of ingest when the wait for it ended (0: every stored cluster was searched)
-    not_indexed_yet: int = 0
+    not_indexed_yet: int = Field(default=0, description=(
+        "stored clusters the search could not look at: the server's index was still catching "
+        "up with a burst of ingest when the wait for it ended (0: it searched them all)"))
 
 
 class Similarity:

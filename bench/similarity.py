@@ -455,7 +455,7 @@ def orb_cost(crops: list[np.ndarray]) -> dict:
             "p95_us": round(float(np.percentile(took, 95)) * 1e6)}
 
 
-def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
+def ingest_cost(count: int, folder: Path, rounds: int = 5) -> dict:
     """What the index costs ingest: nothing in the storing itself; the catch-up a query then
     does (timed, and as a share of ingest if it were done inline); and ingest's rate alone
     against beside a process that keeps its own index of the same database current and asks
@@ -478,6 +478,9 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
         index.refresh()
         again_s = time.perf_counter() - start
     rates: dict[str, list[float]] = {"alone": [], "beside_queries": []}
+    # CPU seconds spent while the scenes were stored, per round: by ingest's process, by
+    # mongod, by the follower (its keeper, mostly)
+    spent: dict[str, list[dict]] = {way: [] for way in rates}
     asked: list[dict] = []  # the follower's queries while scenes were stored
     for number in range(rounds):
         for way, rate in rates.items():
@@ -487,7 +490,14 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
                      str(folder / f"follow-{number}")], stdout=subprocess.PIPE, text=True)
                 if follower and follower.stdout.readline().strip() != "following":
                     raise RuntimeError("the follower did not start (its error is above)")
+                processes = {"mongod": store.client.admin.command("serverStatus")["pid"],
+                             **({"follower": follower.pid} if follower else {})}
+                before = {name: cpu_s(pid) for name, pid in processes.items()}
+                ingest_cpu = time.process_time()
                 rate.append(added / stored_s(store, generated))
+                spent[way].append({"ingest": time.process_time() - ingest_cpu,
+                                   **{name: cpu_s(pid) - before[name]
+                                      for name, pid in processes.items()}})
                 if follower:
                     follower.terminate()
                     asked += [json.loads(line) for line in follower.communicate(timeout=30)[0]
@@ -504,6 +514,9 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
             "ingest_slowdown_beside_queries": round(slowdown, 3),
             "target_slowdown": SLOWDOWN_TARGET, "met": slowdown <= SLOWDOWN_TARGET,
             "keeper_niceness": Settings().similarity_niceness,
+            "cpu_s_while_storing_median": {
+                way: {name: round(statistics.median(r[name] for r in rounds_spent), 2)
+                      for name in rounds_spent[0]} for way, rounds_spent in spent.items()},
             "queries_during_ingest": {  # what the follower's user saw meanwhile
                 "count": len(asked),
                 "ms": {"p50": round(float(np.percentile(waits, 50)), 1),
@@ -519,6 +532,12 @@ def ingest_cost(count: int, folder: Path, rounds: int = 3) -> dict:
             "slowdown_if_inline": round(inline, 3),
             # the next refresh reads the ids of the last MARGIN seconds again (similarity.py)
             "refresh_right_after_ms": round(again_s * 1e3, 1)}
+
+
+def cpu_s(pid: int) -> float:
+    """CPU seconds a process has used so far, all its threads (Linux's /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def stored_s(store: MemoryStore, generated: list[Scene]) -> float:
@@ -571,7 +590,7 @@ def main() -> None:
                         help="ingest: scenes stored per round (6 clusters each)")
     parser.add_argument("--words", type=int, default=50_000,
                         help="words added to the vocabulary to see what a large one costs")
-    parser.add_argument("--rounds", type=int, default=3,
+    parser.add_argument("--rounds", type=int, default=5,
                         help="ingest: rounds of storing alone and beside queries")
     parser.add_argument("--follow", nargs=2, metavar=("DB", "FOLDER"), help=argparse.SUPPRESS)
     args = parser.parse_args()

@@ -482,6 +482,8 @@ def ingest_cost(count: int, folder: Path, rounds: int = 5) -> dict:
     # mongod, by the follower (its keeper, mostly)
     spent: dict[str, list[dict]] = {way: [] for way in rates}
     asked: list[dict] = []  # the follower's queries while scenes were stored
+    current_again_s: list[float] = []  # from the end of storing to the follower's first answer
+    # that searched every stored cluster
     for number in range(rounds):
         for way, rate in rates.items():
             with scratch_store() as store:
@@ -499,9 +501,13 @@ def ingest_cost(count: int, folder: Path, rounds: int = 5) -> dict:
                                    **{name: cpu_s(pid) - before[name]
                                       for name, pid in processes.items()}})
                 if follower:
+                    stored_at = time.time()
+                    answers = list(answers_until_current(follower, stored_at))
+                    current_again_s.append(answers[-1]["at"] + answers[-1]["ms"] / 1e3
+                                           - stored_at)
                     follower.terminate()
-                    asked += [json.loads(line) for line in follower.communicate(timeout=30)[0]
-                              .splitlines()]
+                    follower.communicate(timeout=30)
+                    asked += [q for q in answers if q["at"] < stored_at]
     slowdown = 1 - statistics.median(rates["beside_queries"]) / statistics.median(
         rates["alone"])
     waits = [q["ms"] for q in asked]
@@ -524,6 +530,10 @@ def ingest_cost(count: int, folder: Path, rounds: int = 5) -> dict:
                 "share_not_current": round(float(np.mean(np.array(behind) > 0)), 2)
                 if asked else None,
                 "not_indexed_yet_max": max(behind, default=None)},
+            # after each round: how long until the follower's index searched every cluster
+            "current_again_s_after_storing": {
+                "median": round(statistics.median(current_again_s), 1),
+                "max": round(max(current_again_s), 1)} if current_again_s else None,
             "visual_words_per_64px_crop": visual_words,
             "visual_words_slowdown_if_at_ingest": round(orb_s / ingest_s, 3),
             "visual_words_share_of_catch_up": round(orb_s / refresh_s, 3),
@@ -532,6 +542,20 @@ def ingest_cost(count: int, folder: Path, rounds: int = 5) -> dict:
             "slowdown_if_inline": round(inline, 3),
             # the next refresh reads the ids of the last MARGIN seconds again (similarity.py)
             "refresh_right_after_ms": round(again_s * 1e3, 1)}
+
+
+def answers_until_current(follower: subprocess.Popen, stored_at: float,
+                          timeout: float = 300.0) -> Iterator[dict]:
+    """The follower's answers (a JSON line each), up to the first one asked after `stored_at`
+    that searched every stored cluster."""
+    for line in follower.stdout:
+        answer = json.loads(line)
+        yield answer
+        if answer["at"] >= stored_at and answer["not_indexed_yet"] == 0:
+            return
+        if answer["at"] - stored_at > timeout:
+            raise RuntimeError(f"the follower's index was not current {timeout:.0f} s after")
+    raise RuntimeError("the follower stopped (its error is above)")
 
 
 def cpu_s(pid: int) -> float:
@@ -552,7 +576,8 @@ def stored_s(store: MemoryStore, generated: list[Scene]) -> float:
 def follow(db: str, folder: str) -> None:
     """(--follow) A user browsing a server while scenes are stored: its index kept current as
     `pmem serve` keeps it and asked for more like the newest cluster twice a second, until
-    terminated; a line of JSON per query (its time, the clusters it could not search yet)."""
+    terminated; a line of JSON per query (when asked, its time, the clusters it could not search
+    yet)."""
     settings = Settings(db=db)
     store = MemoryStore.open(settings)
     search = Similarity(store, settings, SimilarityIndex(store, Path(folder)),
@@ -562,9 +587,9 @@ def follow(db: str, folder: str) -> None:
     while True:
         newest = store.db[CLUSTERS].find_one({}, {"_id": 1}, sort=[("_id", -1)])
         if newest is not None:
-            start = time.perf_counter()
+            at, start = time.time(), time.perf_counter()
             page = search.similar_to(cluster=newest["_id"], k=10)
-            print(json.dumps({"ms": (time.perf_counter() - start) * 1e3,
+            print(json.dumps({"at": at, "ms": (time.perf_counter() - start) * 1e3,
                               "not_indexed_yet": page.not_indexed_yet}), flush=True)
         time.sleep(0.5)
 

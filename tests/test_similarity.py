@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from contextlib import contextmanager
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from playwright.sync_api import expect
 from percept_memory.cli import main
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest import backends
-from percept_memory.memory import similarity
+from percept_memory.memory import index_keeper, similarity
 from percept_memory.memory.index_keeper import IndexKeeper
 from percept_memory.memory.schema import CLUSTERS, OUTBOX, SCENES
 from percept_memory.memory.settings import Settings
@@ -283,32 +284,80 @@ def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path)
     assert keepers() <= before
 
 
+@contextmanager
+def more_scenes(store):
+    """A `store(scenes)` that stores scenes for one test; they are deleted after it (the other
+    tests know the day's scenes only). Yields it; returns the ids of the clusters stored."""
+    stored = []
+
+    def put(scenes):
+        stored.extend(store.put_scenes(scenes))
+        return [c for s in stored[-len(scenes):] for c in s.cluster_ids]
+
+    try:
+        yield put
+    finally:
+        for collection in (SCENES, OUTBOX):
+            store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
+        store.db[CLUSTERS].delete_many({"_id": {"$in": [c for s in stored
+                                                         for c in s.cluster_ids]}})
+
+
 def test_the_files_are_written_in_proportion_and_when_the_keeper_stops(store, day, tmp_path,
                                                                       monkeypatch):
     monkeypatch.setattr(similarity, "SAVE_EVERY", 1)  # the share decides
     index = SimilarityIndex(store, tmp_path / "index")
     keeper = IndexKeeper(index, niceness=19)
-    stored = store.put_scenes(kitchen_week.generate(days=1, seed=7).scenes[:2])
-    ids = [c for s in stored for c in s.cluster_ids]
-    try:
-        assert keeper.current(timeout=60) == 0
-        assert index.unsaved == 0  # the first catch-up is written at once
-        newer = store.put_scenes(kitchen_week.generate(days=1, seed=8).scenes[:2])
-        ids += [c for s in newer for c in s.cluster_ids]
-        stored += newer
-        assert keeper.current(timeout=60) == 0
-        added = sum(len(s.cluster_ids) for s in newer)
-        assert added < len(index.rows) // similarity.SAVE_SHARE
-        assert index.unsaved == added  # fewer than an eighth of the rows: not written yet
-        keeper.stop()
-        again = SimilarityIndex(store, tmp_path / "index")
-        again.load()
-        assert all(again.rows.holds(i) for i in ids)  # written as the keeper stopped
-    finally:
-        keeper.stop()
-        for collection in (SCENES, OUTBOX):  # the other tests know the day's scenes only
-            store.db[collection].delete_many({"_id": {"$in": [s.scene_id for s in stored]}})
-        store.db[CLUSTERS].delete_many({"_id": {"$in": ids}})
+    with more_scenes(store) as put:
+        ids = put(kitchen_week.generate(days=1, seed=7).scenes[:2])
+        try:
+            assert keeper.current(timeout=60) == 0
+            assert index.unsaved == 0  # the first catch-up is written at once
+            newer = put(kitchen_week.generate(days=1, seed=8).scenes[:2])
+            ids += newer
+            assert keeper.current(timeout=60) == 0
+            assert len(newer) < len(index.rows) // similarity.SAVE_SHARE
+            assert index.unsaved == len(newer)  # fewer than an eighth of the rows: not written
+            keeper.stop()
+            again = SimilarityIndex(store, tmp_path / "index")
+            again.load()
+            assert all(again.rows.holds(i) for i in ids)  # written as the keeper stopped
+        finally:
+            keeper.stop()
+
+
+@pytest.mark.parametrize("max_defer_s", [60.0, 0.2])
+def test_a_keeper_waits_while_clusters_are_stored_in_bulk(store, day, tmp_path, monkeypatch,
+                                                          max_defer_s):
+    """Storing that goes on (here any: the thresholds lowered) is not slowed by describing
+    it: the keeper waits for a pause, then catches up; at most max_defer_s at a time."""
+    monkeypatch.setattr(index_keeper, "BURST", 1)
+    monkeypatch.setattr(index_keeper, "BURST_PER_S", 1.0)
+    monkeypatch.setattr(index_keeper, "PROBE_S", 0.05)
+    monkeypatch.setattr(index_keeper, "MAX_DEFER_S", max_defer_s)
+    index = SimilarityIndex(store, tmp_path / "index")
+    keeper = IndexKeeper(index, niceness=19, poll_s=0.25)  # longer than between two scenes
+    scenes = kitchen_week.generate(days=1, seed=9).scenes[:30]
+    with more_scenes(store) as put:
+        try:
+            assert keeper.current(timeout=60) == 0  # nothing being stored: caught up
+            held = index.rows.live_count()
+            storing = threading.Thread(target=lambda: [(put([s]), time.sleep(0.02))
+                                                       for s in scenes])
+            storing.start()
+            time.sleep(0.3)
+            behind = keeper.current(timeout=0.3)
+            while storing.is_alive():
+                time.sleep(0.05)
+            grew = index.rows.live_count() - held  # described while it was stored
+            if max_defer_s > 1:
+                assert behind > 0 and grew == 0
+            else:  # a bulk load that does not pause is described every max_defer_s
+                assert grew > 0
+            assert keeper.current(timeout=60) == 0  # the pause: caught up
+            assert index.rows.live_count() == store.db[CLUSTERS].count_documents({})
+        finally:
+            keeper.stop()
 
 
 def test_a_keeper_that_fails_to_catch_up_keeps_trying(store, day, tmp_path, monkeypatch, caplog):

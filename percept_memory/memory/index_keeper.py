@@ -11,6 +11,14 @@ how many stored clusters it could not look at yet. When the cores are not satura
 has the idle CPU and a query finds the index current; when other work at normal priority keeps
 them busy for long, niceness 19 leaves it ~1.5 % of a core (PMEM_SIMILARITY_NICENESS trades
 that back). Linux gives each thread its own niceness; elsewhere the keeper runs at the process's.
+
+Niceness alone still let a keeper that described clusters on the core storing left idle slow
+the storing by ~7-10 % (their shared caches, mongod's reads for it; README). So, as the memory
+pipeline gives way to ingest (pipeline.py), the keeper waits while clusters are stored in bulk
+(BURST of them at least BURST_PER_S a second since its last look: an import, a backlog posted at
+once; a robot streaming scenes stays far below), at most MAX_DEFER_S at a time, so that a bulk
+load that never pauses is still described every MAX_DEFER_S. A robot's stream is described as
+it comes.
 """
 
 from __future__ import annotations
@@ -19,6 +27,7 @@ import logging
 import os
 import sys
 import threading
+import time
 
 from pymongo.errors import InvalidOperation
 
@@ -28,6 +37,12 @@ log = logging.getLogger(__name__)
 
 POLL_S = 1.0  # unasked, the keeper looks for new clusters this often (two small reads)
 JOIN_S = 10.0  # stop() waits this long for a catch-up under way (a thread of a daemon after)
+# Storing in bulk: this many clusters since the keeper's last look, at this rate or faster (the
+# keeper describes ~450-950 a second; a robot posting 10 scenes of 6 clusters a second stores 60)
+BURST = 50
+BURST_PER_S = 300.0
+PROBE_S = 0.25  # the keeper's first look at the rate lasts this long
+MAX_DEFER_S = 10.0  # the longest the keeper waits for a bulk load to pause
 
 
 class IndexKeeper:
@@ -44,6 +59,8 @@ class IndexKeeper:
         self._changed = threading.Condition()
         self._stopping = threading.Event()
         self._thread: threading.Thread | None = None
+        self._looked: tuple[int, float] | None = None  # clusters stored at its last look, when
+        self._deferred_since: float | None = None  # waiting for a bulk load since
 
     def current(self, timeout: float) -> int:
         """Wait for a catch-up that begins after this call to finish, at most `timeout`
@@ -77,6 +94,9 @@ class IndexKeeper:
             with self._changed:
                 ticket = self._asked
             try:
+                if self._bulk_load_under_way():
+                    self._stopping.wait(self.poll_s)
+                    continue
                 self.index.refresh()
             except InvalidOperation:  # the store was closed: nothing is left to keep current
                 return
@@ -91,6 +111,25 @@ class IndexKeeper:
                     self._changed.wait(self.poll_s)  # until asked, stopped or the poll
         if self.index.unsaved:  # what was added since the last save is not described again
             self.index.save()
+
+    def _bulk_load_under_way(self) -> bool:
+        """Whether clusters are being stored in bulk (see the module's docstring) and the
+        keeper has not waited MAX_DEFER_S for it yet."""
+        if self._looked is None:  # the first look: the rate over a moment
+            self._looked = (self.index.stored(), time.monotonic())
+            self._stopping.wait(PROBE_S)
+        stored, now = self.index.stored(), time.monotonic()
+        looked, self._looked = self._looked, (stored, now)
+        grew = stored - looked[0] >= max(BURST, BURST_PER_S * (now - looked[1]))
+        if not grew:
+            self._deferred_since = None
+            return False
+        if self._deferred_since is None:
+            self._deferred_since = now
+        if now - self._deferred_since < MAX_DEFER_S:
+            return True
+        self._deferred_since = None  # waited long enough: one catch-up, then wait again
+        return False
 
 
 def lower_priority(thread_id: int, niceness: int) -> None:

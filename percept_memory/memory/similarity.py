@@ -579,8 +579,7 @@ class SimilarityIndex:
                 with self.lock:
                     self.load()
             changed = self._add(self._recent_unknown())
-            clusters = self.store.db[CLUSTERS].estimated_document_count()
-            if clusters != self.rows.live_count():
+            if self.stored() != self.rows.live_count():
                 changed += self._reconcile()
             with self.lock:
                 self.unsaved += changed
@@ -591,8 +590,11 @@ class SimilarityIndex:
 
     def behind(self) -> int:
         """How many stored clusters the index lacks (from MongoDB's count of them)."""
-        return max(0, self.store.db[CLUSTERS].estimated_document_count()
-                   - self.rows.live_count())
+        return max(0, self.stored() - self.rows.live_count())
+
+    def stored(self) -> int:
+        """How many clusters MongoDB holds (its collection's count: no scan)."""
+        return self.store.db[CLUSTERS].estimated_document_count()
 
     def _recent_unknown(self) -> list[ObjectId]:
         """The clusters stored since the last read (since the newest id held, after a load),

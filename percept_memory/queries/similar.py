@@ -81,8 +81,9 @@ class SimilarPage(BaseModel):
     descriptors: list[str]  # those of the start the search used
     items: list[SimilarHit]
     not_indexed_yet: int = Field(default=0, description=(
-        "stored clusters the search could not look at: the server's index was still catching "
-        "up with a burst of ingest when the wait for it ended (0: it searched them all)"))
+        "stored clusters the search could not look at: the server's index had not described "
+        "them yet when the wait for it ended (it waits for a burst of ingest to pause, then "
+        "catches up; 0: it searched them all)"))
 
 
 class Similarity:

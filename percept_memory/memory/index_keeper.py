@@ -41,7 +41,7 @@ JOIN_S = 10.0  # stop() waits this long for a catch-up under way (a thread of a 
 # keeper describes ~450-950 a second; a robot posting 10 scenes of 6 clusters a second stores 60)
 BURST = 50
 BURST_PER_S = 300.0
-PROBE_S = 0.25  # the keeper's first look at the rate lasts this long
+PROBE_S = 0.1  # the keeper's first look at the rate lasts this long (within a search's wait)
 MAX_DEFER_S = 10.0  # the longest the keeper waits for a bulk load to pause
 
 

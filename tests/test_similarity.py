@@ -286,13 +286,14 @@ def test_a_keeper_catches_up_in_a_thread_of_lower_priority(store, day, tmp_path)
 
 @contextmanager
 def more_scenes(store):
-    """A `store(scenes)` that stores scenes for one test; they are deleted after it (the other
-    tests know the day's scenes only). Yields it; returns the ids of the clusters stored."""
+    """Yields `put(scenes)`, which stores scenes for one test and returns their clusters' ids;
+    they are deleted after it (the other tests know the day's scenes only)."""
     stored = []
 
     def put(scenes):
-        stored.extend(store.put_scenes(scenes))
-        return [c for s in stored[-len(scenes):] for c in s.cluster_ids]
+        new = store.put_scenes(scenes)
+        stored.extend(new)
+        return [c for s in new for c in s.cluster_ids]
 
     try:
         yield put
@@ -347,8 +348,7 @@ def test_a_keeper_waits_while_clusters_are_stored_in_bulk(store, day, tmp_path, 
             storing.start()
             time.sleep(0.3)
             behind = keeper.current(timeout=0.3)
-            while storing.is_alive():
-                time.sleep(0.05)
+            storing.join()
             grew = index.rows.live_count() - held  # described while it was stored
             if max_defer_s > 1:
                 assert behind > 0 and grew == 0

@@ -36,7 +36,7 @@ from percept_memory.ingest.json_batches import (
 )
 from percept_memory.ingest.json_input import input_problems
 from percept_memory.memory.catalogue.stage import CatalogueStage
-from percept_memory.memory.consolidation import Consolidation
+from percept_memory.memory.consolidation import Consolidation, as_evidence
 from percept_memory.memory.documents import Documents, SceneIds
 from percept_memory.memory.pipeline import Pipeline
 from percept_memory.memory.settings import Settings
@@ -153,8 +153,14 @@ class IngestService:
         belief is current), at most that long: `settled` tells whether they did. `screened`:
         as for `validate`."""
         with self.pipeline.ingesting():
+            validated: list[Scene] = []
             chunks = self._validated_chunks(items, context, labels, screened)
-            results = self._stored(self.store.put_scene_chunks(chunks))
+            results = self.store.put_scene_chunks(_kept(chunks, validated))
+            self.store.handed_over.put(
+                as_evidence(scene) for item, scene, ids in zip(items, validated, results,
+                                                               strict=True)
+                if ids.created and not isinstance(item, Scene))  # (made here, not a caller's)
+            self._stored(results)
         if wait is not None:
             self.settled(results, wait)
         return results
@@ -232,6 +238,13 @@ class IngestService:
         if any(r.created for r in results):
             self.pipeline.wake()
         return results
+
+
+def _kept(chunks: Iterable[list[Scene]], kept: list[Scene]) -> Iterator[list[Scene]]:
+    """The chunks, their scenes kept in `kept` as they go by."""
+    for chunk in chunks:
+        kept += chunk
+        yield chunk
 
 
 def _scenes(body: bytes, ndjson: bool) -> tuple[list, bool]:

@@ -72,6 +72,25 @@ SCENE_EVIDENCE = {"images": 0, "clouds": 0, "log": 0, "relations": 0, "annotatio
                   "transforms": 0, docs.SUMMARY_KEY: 0, docs.BLOBS_KEY: 0}
 CLUSTER_EVIDENCE = {"hypotheses.crop": 0, "hypotheses.mask": 0, "hypotheses.cloud": 0,
                     docs.SEARCH_KEY: 0}
+HYPOTHESIS_EVIDENCE = {key.removeprefix("hypotheses."): 0 for key in CLUSTER_EVIDENCE
+                       if key.startswith("hypotheses.")}
+
+
+def as_evidence(scene: Scene) -> Scene:
+    """The scene as identity reads it back (SCENE_EVIDENCE, CLUSTER_EVIDENCE): what the read
+    leaves out is at its default. A scene stored in this process is handed over so
+    (store.HandedOver), sharing its annotations: the caller must not change them."""
+    return scene.model_copy(update={**_left_out(scene, SCENE_EVIDENCE), "clusters": [
+        cluster.model_copy(update={"hypotheses": [
+            hypothesis.model_copy(update=_left_out(hypothesis, HYPOTHESIS_EVIDENCE))
+            for hypothesis in cluster.hypotheses]})
+        for cluster in scene.clusters]})
+
+
+def _left_out(model, projection: dict) -> dict:
+    fields = type(model).model_fields
+    return {name: fields[name].get_default(call_default_factory=True)
+            for name in projection if name in fields}
 
 
 class Consolidation:
@@ -406,17 +425,24 @@ class Consolidation:
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and
-        per cluster how many annotations it arrived with."""
-        scene_docs = {doc["_id"]: doc for doc in self.store.scenes.find(
-            {"_id": {"$in": list(scene_ids)}}, SCENE_EVIDENCE, session=session)}
-        cluster_ids = [c for doc in scene_docs.values() for c in doc["clusters"]]
-        cluster_docs = list(self.store.clusters.find({"_id": {"$in": cluster_ids}},
-                                                     CLUSTER_EVIDENCE, session=session))
-        blobs = self.store._blobs(cluster_docs, session)
-        arrived = {doc["_id"]: docs.arrived(doc) for doc in cluster_docs}
+        per cluster how many annotations it arrived with: those this process stored handed
+        over (all they hold arrived with them), the others read back."""
+        scenes = {key: scene for key in scene_ids
+                  if (scene := self.store.handed_over.get(key)) is not None}
+        arrived = {c.id: len(c.annotations) for scene in scenes.values() for c in scene.clusters}
+        if unread := [key for key in scene_ids if key not in scenes]:
+            scene_docs = list(self.store.scenes.find({"_id": {"$in": unread}}, SCENE_EVIDENCE,
+                                                     session=session))
+            cluster_ids = [c for doc in scene_docs for c in doc["clusters"]]
+            cluster_docs = list(self.store.clusters.find({"_id": {"$in": cluster_ids}},
+                                                         CLUSTER_EVIDENCE, session=session))
+            blobs = self.store._blobs(cluster_docs, session)
+            arrived |= {doc["_id"]: docs.arrived(doc) for doc in cluster_docs}
+            scenes |= {doc["_id"]: docs.decode_scene(doc, cluster_docs, blobs)
+                       for doc in scene_docs}
         for scene_id in scene_ids:
-            if scene_id in scene_docs:  # (a scene deleted by hand has nothing to consolidate)
-                yield docs.decode_scene(scene_docs[scene_id], cluster_docs, blobs), arrived
+            if scene_id in scenes:  # (a scene deleted by hand has nothing to consolidate)
+                yield scenes[scene_id], arrived
 
     def observations(self, cluster_ids: list, session=None) -> dict:
         """The evidence of stored clusters (as Observations, by id), decoded once: what a

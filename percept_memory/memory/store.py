@@ -10,6 +10,8 @@ the document layout in documents.py and do only the I/O here.
 from __future__ import annotations
 
 import queue
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import suppress
@@ -73,6 +75,30 @@ def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
 
 
 HALVE, STORED = "halve", "stored"
+HANDED_OVER = 256  # scenes kept for this process's consolidator, the oldest dropped first
+
+
+class HandedOver:
+    """Scenes this process stored and made itself (from a request's JSON), as identity reads
+    them back (consolidation.as_evidence), for this process's consolidator: a scene waited
+    for is consolidated without reading it, its clusters and their blobs back and decoding
+    every annotation again. A scene not here (stored elsewhere, dropped) is read back."""
+
+    def __init__(self, size: int = HANDED_OVER):
+        self.size = size
+        self._scenes: OrderedDict[ObjectId, Scene] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def put(self, scenes: Iterable[Scene]) -> None:
+        with self._lock:
+            for scene in scenes:
+                self._scenes[scene.id] = scene
+            while len(self._scenes) > self.size:
+                self._scenes.popitem(last=False)
+
+    def get(self, scene_id: ObjectId) -> Scene | None:
+        with self._lock:
+            return self._scenes.get(scene_id)
 
 
 class _Abort(Exception):
@@ -145,6 +171,10 @@ class StoreBase:
 class MemoryStore(StoreBase):
     """The memory, on one MongoDB database. Open with `MemoryStore.open()` (settings from the
     environment; the embedded mongod unless MONGODB_URI is set)."""
+
+    def __init__(self, client, db_name: str, *, gridfs_threshold: int):
+        super().__init__(client, db_name, gridfs_threshold=gridfs_threshold)
+        self.handed_over = HandedOver()
 
     @classmethod
     def open(cls, settings: Settings | None = None) -> MemoryStore:

@@ -428,7 +428,16 @@ class LongRun(Run):
 
     def score(self, score: Score, decisions, known, expected, elapsed: float) -> None:
         """identity.Run's, and the moves split by how far they went: a nudge of 0.1 m lies
-        within noise of sigma 0.1, where no memory tells it from a stay."""
+        within noise of sigma 0.1, where no memory tells it from a stay. Scored as the scene
+        left the memory: an object it merged into another (either id may be the one that
+        stays) is that other, and is not one of the objects remembered but unseen."""
+        merged = dict(self.decider.merged)  # (followed after the scene: follow_merges)
+        if merged:
+            expected = {i: (merged.get(obj, obj), explanation)
+                        for i, (obj, explanation) in expected.items()}
+            known = [k for k in known if k.key not in merged]
+            decisions = [*decisions[:len(expected)],
+                         *(d for d in decisions[len(expected):] if d.object not in merged)]
         remembered = {**self.gone, **self.belief}
         for i, (obj, explanation) in expected.items():
             if explanation == "move" and obj in remembered:

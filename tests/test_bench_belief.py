@@ -34,7 +34,8 @@ def run(monkeypatch):
     monkeypatch.syspath_prepend(str(BENCH))
     import belief
 
-    run = belief.LongRun(seed=1, noise=0.025, decider=None, where_samples=0)
+    run = belief.LongRun(seed=1, noise=0.025, decider=SimpleNamespace(merged=[]),
+                         where_samples=0)
     run.world.place = {0: np.array([0.2, 0.1])}
     run.world.side[0] = 1
     run.last_id, run.last_place, run.last_side = {0: "K"}, {0: np.array([0.2, 0.1])}, {0: 1}
@@ -105,3 +106,20 @@ def test_the_moves_are_scored_apart_by_how_far_they_went(run):
                  Decision((1, 3), "L", Explanation.MOVE, 0.9)]
     run.score(Score(), decisions, [], {0: ("K", "move"), 1: ("L", "move")}, 0.0)
     assert run.moves == {belief.NUDGED: [0, 1], belief.FAR: [1, 1]}
+
+
+def test_a_scene_is_scored_as_it_left_the_memory_after_its_merges(run):
+    """The memory found in this scene that "K", just seen, is "J", remembered for longer, and
+    kept J's id: the observation answered "J" is right where the truth still expected "K",
+    and K, merged into J, is no object remembered but unseen."""
+    from identity import Known, Score
+
+    from percept_memory.memory.identity import Decision, Explanation, Observation
+
+    seen = Observation((0, 5), (0.2, 0.1, 0.0))
+    run.decider.merged = [("K", "J")]
+    score = Score()
+    run.score(score, [Decision((0, 5), "J", Explanation.NEWVIEW, 0.9),
+                      Decision("K", "K", Explanation.HIDDEN, 1.0)],
+              [Known("K", seen, True)], {0: ("K", "newview")}, 0.0)
+    assert score.associations == [1, 1] and score.explanations == [1, 1]

@@ -235,6 +235,24 @@ def test_one_object_remembered_twice_is_merged_when_its_sides_meet(empty_store):
     assert history == ["appear", "disappear", "appear", "newview"]
 
 
+def test_an_object_remembered_twice_keeps_the_id_of_its_longer_history(empty_store):
+    """Seen red three times, taken away and found showing blue (a new object, for a while),
+    then turned back to red: one object, under the id it was known by for longer, and where
+    and as it is now."""
+    reds, blue, turned = [_box("red", 0.5) for _ in range(3)], _box("blue", 3.5), _box("red", 3.5)
+    consolidate_one_by_one(empty_store, [*(_looks(0.5, c, t=t) for t, c in enumerate(reds)),
+                                         _looks(0.5, t=3), _looks(3.5, blue, t=4)])
+    known_for_long = empty_store.get_cluster(reds[0].id).object_id
+    assert empty_store.get_cluster(blue.id).object_id != known_for_long
+    consolidate_one_by_one(empty_store, [_looks(3.5, turned, t=5)])
+    (doc,) = empty_store.db.objects.find({"map": "sides"})
+    assert doc["_id"] == known_for_long and doc["observations"] == 5
+    assert doc["state"] == "present" and doc["position"][0] == pytest.approx(3.5)
+    assert {empty_store.get_cluster(c.id).object_id for c in (*reds, blue, turned)} == {
+        known_for_long}
+    assert empty_store.db.events.count_documents({"object_id": {"$ne": known_for_long}}) == 0
+
+
 def test_the_catalogue_learns_each_observation_as_the_object_it_was_by_then(empty_store):
     """Identity merges an object remembered twice in a later scene; whether the consolidator
     took the scenes one at a time (a busy server) or all in one batch (a rebuild), the

@@ -32,7 +32,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from bson import ObjectId
-from pymongo import DeleteMany, DeleteOne, UpdateMany, UpdateOne
+from pymongo import DeleteMany, DeleteOne, ReplaceOne, UpdateMany, UpdateOne
 
 from percept_memory.converters import decode
 
@@ -238,15 +238,18 @@ class Consolidation:
         merged: dict = {}  # object -> the object it was merged into
         twins, taken_looks = self._remembered_twice(decisions, clusters, later, session)
         for keep, twin in twins:
-            self._merge(keep, twin, scene, known_objects, later, session)
-            merged[twin] = keep
+            keep, twin = _after(merged, keep), _after(merged, twin)
+            stays = self._merge(keep, twin, scene, known_objects, later, session)
+            merged[twin if stays == keep else keep] = stays
+        absorbed = {twin for _, twin in twins}  # (their looks are the objects' seen now)
         for other, look in taken_looks:
-            self._forget_look(other, look, known_objects, later)
+            if other not in absorbed:
+                self._forget_look(_after(merged, other), look, known_objects, later)
         for keep, twin in self._asked_to_merge(asked, seen_as, session):
             keep, twin = _after(merged, keep), _after(merged, twin)
             if keep != twin and not self._split_between(keep, twin, later, session):
-                self._merge(keep, twin, scene, known_objects, later, session)
-                merged[twin] = keep
+                stays = self._merge(keep, twin, scene, known_objects, later, session)
+                merged[twin if stays == keep else keep] = stays
         self.decided.update((c, _after(merged, o)) for c, o in seen_as.items())
         return decisions
 
@@ -275,9 +278,10 @@ class Consolidation:
                 if not (self._seen_together(object_id, mate, later)
                         or self._split_between(object_id, mate, later, session)):
                     likeness = self._learning.likeness(object_id, mate)
-                    self._merge(object_id, mate, scene, known, later, session)
-                    merged[mate] = object_id
-                    self._appeared_as_moved(object_id, started, likeness, session)
+                    stays = self._merge(object_id, mate, scene, known, later, session)
+                    merged[mate if stays == object_id else object_id] = stays
+                    self._appeared_as_moved(stays, started, likeness, session)
+                    object_id = stays
         if merged:
             self.decided.update((c, _after(merged, o)) for c, o in self.decided.items())
 
@@ -397,9 +401,12 @@ class Consolidation:
         return not later.seen_in(a).isdisjoint(later.seen_in(b))
 
     def _merge(self, keep, twin, scene: Scene, known: KnownObjects, later: Later,
-               session) -> None:
+               session) -> ObjectId:
         """One object remembered as two: `twin`'s looks, observations, names and history
-        become `keep`'s, and `twin` is no more."""
+        become `keep`'s (the object as `keep` is now), and one of the two ids is no more: the
+        one with the shorter history (ties: twin's). Its links are what a merge moves, one
+        write per event and per cluster (a long history took 20 ms), and an object known for
+        long keeps its id when a short-lived duplicate is found to be it. The id that stays."""
         later.write()  # the merge reads the objects and moves the events and links
         both = {doc["_id"]: doc for doc in self.objects.find({"_id": {"$in": [keep, twin]}},
                                                              session=session)}
@@ -407,21 +414,25 @@ class Consolidation:
         weights = stored_weights(kept) + stored_weights(gone)
         mine = set(_views(kept))
         looks = [look for look in _looks(gone) if look[0] not in mine] + _looks(kept)
-        fields = {**_looks_fields(looks), **naming_fields(weights),
-                  "first_seen": min(kept["first_seen"], gone["first_seen"])}
-        self.objects.bulk_write([UpdateOne({"_id": keep}, {
-            "$set": fields, "$inc": {"observations": gone.get("observations", 0)}}),
-            DeleteOne({"_id": twin})], session=session)
+        merged = kept | _looks_fields(looks) | naming_fields(weights) | {
+            "first_seen": min(kept["first_seen"], gone["first_seen"]),
+            "observations": kept.get("observations", 0) + gone.get("observations", 0)}
+        stays, goes = ((twin, keep) if gone.get("observations", 0) > kept.get("observations", 0)
+                       else (keep, twin))
+        merged["_id"] = stays
+        self.objects.bulk_write([ReplaceOne({"_id": stays}, merged), DeleteOne({"_id": goes})],
+                                session=session)
         self.events.bulk_write([DeleteMany({"object_id": twin, "scene_id": scene.id}),
-                                UpdateMany({"object_id": twin}, {"$set": {"object_id": keep}})],
+                                UpdateMany({"object_id": goes}, {"$set": {"object_id": stays}})],
                                session=session)
-        self.store.clusters.update_many({"object_id": twin}, {"$set": {"object_id": keep}},
+        self.store.clusters.update_many({"object_id": goes}, {"$set": {"object_id": stays}},
                                         session=session)
-        later.merged(keep, twin)
-        known.take(kept | fields)  # as just written: no read back
-        known.drop(twin)
-        if self._learning:  # (the catalogue's models of twin are keep's)
-            self._learning.merged(keep, twin)
+        later.merged(stays, goes)
+        known.drop(goes)
+        known.take(merged)  # as just written: no read back
+        if self._learning:  # (the catalogue's models of both are the one that stays)
+            self._learning.merged(keep, twin, stays)
+        return stays
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and

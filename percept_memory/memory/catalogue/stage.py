@@ -237,29 +237,34 @@ class Batch:
         return inclusion_degree(self.learner.models[model].graph,
                                 GraphOfViews(frozenset().union(*theirs)))
 
-    def merged(self, keep: ObjectId, twin: ObjectId) -> None:
-        """Identity merged object `twin` into `keep`: twin's models are keep's now, and so
-        are its track's sightings (its unfinished model stays as it is: no observation will
-        grow it)."""
+    def merged(self, keep: ObjectId, twin: ObjectId, stays: ObjectId) -> None:
+        """Identity merged object `twin` into `keep` under the id `stays` (one of the two):
+        both's models are its, keep's track goes on as its track, and twin's sightings are
+        added to it (twin's unfinished model stays as it is: no observation will grow it)."""
+        goes = twin if stays == keep else keep
         for model, owner in self.objects.items():
-            if owner == twin:
-                self.objects[model] = keep
-        self.learnt = {m: keep if o == twin else o for m, o in self.learnt.items()}
-        self.stage.models.update_many({"map": self.map_name, "object_id": twin},
-                                      {"$set": {"object_id": keep}}, session=self.session)
+            if owner == goes:
+                self.objects[model] = stays
+        self.learnt = {m: stays if o == goes else o for m, o in self.learnt.items()}
+        self.stage.models.update_many({"map": self.map_name, "object_id": goes},
+                                      {"$set": {"object_id": stays}}, session=self.session)
         unread = {keep, twin} - self.tracks.keys()
         if unread:
             self.tracks.update((doc["_id"], doc) for doc in self.stage.tracks.find(
                 {"_id": {"$in": list(unread)}}, session=self.session))
-        gone = self.tracks.pop(twin, None)
-        if gone is None:
+        gone = self.tracks.get(twin)
+        if gone is None and stays == keep:
             return
-        self.stage.tracks.delete_one({"_id": twin}, session=self.session)
-        self.touched.discard(twin)
-        track = self.tracks.setdefault(keep, {"_id": keep, "map": self.map_name, "seen": 0})
-        track["seen"] += gone["seen"]
-        track["last_seen"] = max(track.get("last_seen") or 0, gone.get("last_seen") or 0)
-        self.touched.add(keep)
+        track = self.tracks.pop(keep, None) or {"_id": stays, "map": self.map_name, "seen": 0}
+        self.tracks.pop(twin, None)
+        self.stage.tracks.delete_one({"_id": goes}, session=self.session)
+        self.touched.discard(goes)
+        track["_id"] = stays
+        if gone is not None:
+            track["seen"] += gone["seen"]
+            track["last_seen"] = max(track.get("last_seen") or 0, gone.get("last_seen") or 0)
+        self.tracks[stays] = track
+        self.touched.add(stays)
 
     def finish(self, version: ObjectId) -> None:
         """Write what the batch learnt (in the batch's transaction, in which identity writes

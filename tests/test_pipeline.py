@@ -173,15 +173,17 @@ class Commands(monitoring.CommandListener):
 
 def waited_for(mongo_uri, empty, week, threaded: bool) -> Commands:
     """The commands of storing 5 scenes one by one, each waited for (the map's first 3
-    before: its first batches read more), by the pipeline's thread or by the caller."""
+    before: its first batches read more), by the pipeline's thread (looking for every map
+    with work once a minute) or by the caller."""
     commands = Commands()
     client = MongoClient(mongo_uri, event_listeners=[commands], **CLIENT_OPTIONS)
     store = MemoryStore(client, empty.db.name, gridfs_threshold=empty.gridfs_threshold)
     service = IngestService(store)
-    service.ingest_batch(week.scenes[:3], wait=60)
     if threaded:
+        service.pipeline.poll_s = 60.0
         service.pipeline.start()
     try:
+        service.ingest_batch(week.scenes[:3], wait=60)
         commands.on = True
         for scene in week.scenes[3:8]:
             started = time.monotonic()
@@ -202,13 +204,16 @@ def outbox_asks(commands: Commands) -> dict:
 
 def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own(
         mongo_uri, empty, week, monkeypatch):
-    """The server's path: its consolidator thread works, the caller waits. The caller asks
-    MongoDB once and is then told by the thread's commit (with the poll for other processes'
-    work made 5 s, a missed commit would show as a second ask); the thread takes the lease in
-    one command and gives it back in the batch's own transaction."""
+    """The server's path: its consolidator thread works, the caller waits. The caller is told
+    by the thread's commit and asks MongoDB nothing (with the poll for other processes' work
+    made 5 s, a missed commit would show as an ask); the thread works on the map it was woken
+    for, without looking for every map with work (it did when it started), takes the lease
+    in one command and gives it back in the batch's own transaction."""
     monkeypatch.setattr("percept_memory.memory.pipeline.WAIT_POLL_S", 5.0)
     commands = waited_for(mongo_uri, empty, week, threaded=True)
-    assert outbox_asks(commands) == {("distinct", OUTBOX): 5}  # once a scene
+    assert outbox_asks(commands) == {}
+    assert commands.seen["pmem-pipeline", "distinct", OUTBOX] == 0
+    assert commands.seen["pmem-pipeline", "find", MAPS] == 0  # (maps to rebuild)
     lease = Counter({(name, target): n for (thread, name, target), n in commands.seen.items()
                      if thread == "pmem-pipeline" and target == MAPS and name != "find"})
     assert lease == {("findAndModify", MAPS): 5, ("update", MAPS): 5}  # taken; fence and end

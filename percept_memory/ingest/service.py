@@ -160,7 +160,7 @@ class IngestService:
                 as_evidence(scene) for item, scene, ids in zip(items, validated, results,
                                                                strict=True)
                 if ids.created and not isinstance(item, Scene))  # (made here, not a caller's)
-            self._stored(results)
+            self._stored(results, {scene.map for scene in validated})
         if wait is not None:
             self.settled(results, wait)
         return results
@@ -233,10 +233,11 @@ class IngestService:
         if chunk:
             yield chunk
 
-    def _stored(self, results: list[SceneIds]) -> list[SceneIds]:
-        """Tell the pipeline there is work (when new scenes were stored); hand the ids back."""
+    def _stored(self, results: list[SceneIds], maps: Iterable[str] = ()) -> list[SceneIds]:
+        """Tell the pipeline there is work (when new scenes were stored: of these maps, when
+        known); hand the ids back."""
         if any(r.created for r in results):
-            self.pipeline.wake()
+            self.pipeline.wake(maps)
         return results
 
 

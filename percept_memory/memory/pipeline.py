@@ -134,6 +134,8 @@ class Pipeline:
         self.poll_s = poll_s
         self.owner = f"{socket.gethostname()}:{os.getpid()}:{ObjectId()}"
         self._wake = threading.Event()
+        self._woken: set[str] = set()  # maps this process stored scenes of, not yet worked on
+        self._scanned_at = -poll_s  # when run_forever last looked for every map with work
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._ingest = threading.Condition()
@@ -151,6 +153,10 @@ class Pipeline:
         """One pass over every map with work: returns the scenes that went through."""
         maps = set(self.outbox.distinct("map", {"held": False}))
         maps |= {doc["_id"] for doc in self.maps.find({"rebuild": True}, {"_id": 1})}
+        return self.run_on(maps)
+
+    def run_on(self, maps: Iterable[str]) -> int:
+        """One pass over these maps: returns the scenes that went through."""
         return sum(self._work_on(name) for name in sorted(maps))
 
     def drain(self, timeout: float | None = None, progress=None) -> int:
@@ -187,6 +193,8 @@ class Pipeline:
             self._ingest.notify_all()
         self._wake.set()
         try:
+            if self._thread is not None and self._committed(scene_ids, deadline):
+                return True  # (told by this process's thread: no need to ask the database)
             while maps := self._maps_pending(scene_ids):
                 if time.monotonic() >= deadline:
                     return False
@@ -196,15 +204,19 @@ class Pipeline:
                     continue
                 # another consolidator works on them: this pipeline's thread tells when it
                 # committed them; one elsewhere is asked after at most WAIT_POLL_S
-                with self._commits:
-                    if self._commits.wait_for(
-                            lambda: self._went_through_all(scene_ids),
-                            min(WAIT_POLL_S, max(deadline - time.monotonic(), 0))):
-                        return True
+                if self._committed(scene_ids, deadline):
+                    return True
             return True
         finally:
             with self._ingest:
                 self._waiting -= 1
+
+    def _committed(self, scene_ids: Sequence[ObjectId], deadline: float) -> bool:
+        """Whether this process's thread committed these scenes within WAIT_POLL_S (at most
+        until the deadline)."""
+        with self._commits:
+            return self._commits.wait_for(lambda: self._went_through_all(scene_ids),
+                                          min(WAIT_POLL_S, max(deadline - time.monotonic(), 0)))
 
     def _went_through_all(self, scene_ids: Sequence[ObjectId]) -> bool:
         """Whether this process committed all these scenes' stages (recently)."""
@@ -231,8 +243,11 @@ class Pipeline:
             self._thread.join()
             self._thread = None
 
-    def wake(self) -> None:
-        """New scenes were stored: look now, not at the next poll."""
+    def wake(self, maps: Iterable[str] = ()) -> None:
+        """New scenes were stored (of these maps, when the caller knows): look now, not at the
+        next poll."""
+        with self._commits:
+            self._woken.update(maps)
         self._wake.set()
 
     @contextmanager
@@ -278,13 +293,25 @@ class Pipeline:
         work reads its answer."""
         while not self._stop.is_set():
             try:
-                done = self.run_once()
+                done = self._pass()
             except PyMongoError as error:
                 log.warning("pipeline: the database is not answering (%s); retrying", error)
                 done = 0
                 self._stop.wait(5 * self.poll_s)
             self._wake.wait(QUIET_S if done else self.poll_s)
             self._wake.clear()
+
+    def _pass(self) -> int:
+        """run_forever's pass: over every map with work once `poll_s` has passed since the
+        last such look (scenes stored elsewhere, rebuilds asked for, retries due), else over
+        the maps this process stored scenes of since: a scene waited for costs no search for
+        the maps with work."""
+        with self._commits:
+            woken, self._woken = self._woken, set()
+        if time.monotonic() - self._scanned_at < self.poll_s:
+            return self.run_on(woken)
+        self._scanned_at = time.monotonic()
+        return self.run_once()  # (the maps woken for have work: they are among those found)
 
     # --- one map ---------------------------------------------------------------------------
 

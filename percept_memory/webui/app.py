@@ -126,20 +126,23 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         /api/pipeline), unless `wait=belief`. Scenes stored before (same robot and timestamp)
         keep their ids and come back with `created: false`."""
         authorise(request, settings.token)
-        with service.pipeline.ingesting():  # the server's consolidator waits: the whole request
+        ndjson = media_type(request.headers.get("content-type")) == NDJSON
+
+        def stored_and_settled() -> tuple[list, bool | None]:
+            """In one worker thread: the consolidator is asked for the scenes as soon as they
+            are stored, not after a turn of the event loop."""
+            results = service.ingest_json(body, ndjson=ndjson)  # (the consolidator waits)
+            return results, wait and service.settled(results, settings.belief_wait_s)
+
+        with service.pipeline.ingesting():  # (and while the body comes)
             body = await _read_body(request, max_bytes)
-            try:
-                results = await run_in_threadpool(
-                    service.ingest_json, body,
-                    ndjson=media_type(request.headers.get("content-type")) == NDJSON)
-            except NotScenes as error:
-                raise ApiError(422, str(error)) from None
-            except IngestError as error:
-                raise ApiError(422, "the scenes are not valid", error.problems) from None
-        answer: dict[str, Any] = {}
-        if wait:
-            answer["belief"] = "current" if await run_in_threadpool(
-                service.settled, results, settings.belief_wait_s) else "pending"
+        try:
+            results, settled = await run_in_threadpool(stored_and_settled)
+        except NotScenes as error:
+            raise ApiError(422, str(error)) from None
+        except IngestError as error:
+            raise ApiError(422, "the scenes are not valid", error.problems) from None
+        answer: dict[str, Any] = {"belief": "current" if settled else "pending"} if wait else {}
         return {**answer, "scenes": [
             {"scene_id": str(r.scene_id), "cluster_ids": [str(c) for c in r.cluster_ids],
              "annotation_ids": [[str(a) for a in ids] for ids in r.annotation_ids],

@@ -27,7 +27,9 @@ each stage's writes land exactly once or not at all, whoever dies when.
   consolidated, in order, exactly once; a burst of ingest is just not slowed by it (a robot
   that posts a scene every 100 ms leaves it the gaps), and it catches up after the burst. A
   caller that waits for the belief (`wait`) ends the pause for quiet: it wants its scene
-  consolidated now, and is woken by the commit rather than by its next poll.
+  consolidated now, and is woken by the commit rather than by its next poll. The thread
+  works on the maps its process stored scenes of as they come, and looks for every map with
+  work (stored elsewhere, to rebuild, due for a retry) every `poll_s`.
 - Durable where it must be: a scene and its outbox entry commit as the client's write concern
   says (majority: journaled). What the stages write is derived from them, and the leases are
   advisory (the fence decides): a stage transaction and a lease commit without waiting for

@@ -75,7 +75,9 @@ def vocabulary_upserts(entries: list[dict]) -> list[UpdateOne]:
 
 
 HALVE, STORED = "halve", "stored"
-HANDED_OVER = 256  # scenes kept for this process's consolidator, the oldest dropped first
+# scenes kept for this process's consolidator, the oldest dropped first: it takes them within
+# milliseconds of their commit, or reads them back after a burst (a 6 x 20 scene: ~150 kB)
+HANDED_OVER = 64
 
 
 class HandedOver:

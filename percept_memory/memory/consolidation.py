@@ -202,8 +202,8 @@ class Consolidation:
         by_id = {o["_id"]: o for o, _ in believed}
         clusters = {c.id: c for c in kept}
         events, seen_as = [], {}
-        links = [UpdateOne({"_id": c.id}, {"$unset": {"object_id": ""}})
-                 for c in scene.clusters if c.id not in clusters and c.object_id is not None]
+        links = {c.id: None for c in scene.clusters  # (rejected by a person: no object)
+                 if c.id not in clusters and c.object_id is not None}
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
             cluster = None if unseen else clusters.get(decision.key)
@@ -229,7 +229,7 @@ class Consolidation:
                 object_id, place[0] if place else previous.get("position"),
                 live=decision.explanation is not Explanation.DISAPPEAR)
             if cluster is not None:
-                links.append(UpdateOne({"_id": cluster.id}, {"$set": {"object_id": object_id}}))
+                links[cluster.id] = object_id
                 seen_as[cluster.id] = object_id
         later.add(events, links)
         asked = {c.id: others for c in kept if (others := same_as(c.annotations))}
@@ -280,6 +280,7 @@ class Consolidation:
                     likeness = self._learning.likeness(object_id, mate)
                     stays = self._merge(object_id, mate, scene, known, later, session)
                     merged[mate if stays == object_id else object_id] = stays
+                    later.write()  # (the track's first event may be this batch's)
                     self._appeared_as_moved(stays, started, likeness, session)
                     object_id = stays
         if merged:
@@ -407,10 +408,9 @@ class Consolidation:
         one with the shorter history (ties: twin's). Its links are what a merge moves, one
         write per event and per cluster (a long history took 20 ms), and an object known for
         long keeps its id when a short-lived duplicate is found to be it. The id that stays."""
-        later.write()  # the merge reads the objects and moves the events and links
         both = {doc["_id"]: doc for doc in self.objects.find({"_id": {"$in": [keep, twin]}},
                                                              session=session)}
-        kept, gone = both[keep], both[twin]
+        kept, gone = later.as_written(keep, both.get(keep)), later.as_written(twin, both.get(twin))
         weights = stored_weights(kept) + stored_weights(gone)
         mine = set(_views(kept))
         looks = [look for look in _looks(gone) if look[0] not in mine] + _looks(kept)
@@ -420,14 +420,14 @@ class Consolidation:
         stays, goes = ((twin, keep) if gone.get("observations", 0) > kept.get("observations", 0)
                        else (keep, twin))
         merged["_id"] = stays
-        self.objects.bulk_write([ReplaceOne({"_id": stays}, merged), DeleteOne({"_id": goes})],
-                                session=session)
+        self.objects.bulk_write([ReplaceOne({"_id": stays}, merged, upsert=True),
+                                 DeleteOne({"_id": goes})], session=session)
         self.events.bulk_write([DeleteMany({"object_id": twin, "scene_id": scene.id}),
                                 UpdateMany({"object_id": goes}, {"$set": {"object_id": stays}})],
                                session=session)
         self.store.clusters.update_many({"object_id": goes}, {"$set": {"object_id": stays}},
                                         session=session)
-        later.merged(stays, goes)
+        later.merged(stays, goes, twin, scene.id)
         known.drop(goes)
         known.take(merged)  # as just written: no read back
         if self._learning:  # (the catalogue's models of both are the one that stays)
@@ -580,7 +580,7 @@ class Later:
         self.targets, self.session = (objects, events, clusters), session
         self.objects: dict = {}  # object id -> its writes so far: Written
         self.events: list[dict] = []
-        self.links: list[UpdateOne] = []
+        self.links: dict = {}  # cluster id -> its object (None: none)
         self._seen_in: dict = {}  # object id -> the scenes it was seen in, once asked
 
     def update(self, object_id, fields: dict, labels: Counter | None = None,
@@ -595,9 +595,9 @@ class Later:
             if written.first_seen is None:
                 written.first_seen = first_seen
 
-    def add(self, events: list[dict], links: list[UpdateOne]) -> None:
+    def add(self, events: list[dict], links: dict) -> None:
         self.events += events
-        self.links += links
+        self.links |= links
         for event in events:
             if event["cluster_id"] is not None and event["object_id"] in self._seen_in:
                 self._seen_in[event["object_id"]].add(event["scene_id"])
@@ -614,10 +614,23 @@ class Later:
                 if e["object_id"] == object_id and e["cluster_id"] is not None}
         return self._seen_in[object_id]
 
-    def merged(self, keep, twin) -> None:
-        """`twin`'s events became `keep`'s (written: a merge writes what is pending first)."""
-        self._seen_in.pop(keep, None)
-        self._seen_in.pop(twin, None)
+    def as_written(self, object_id, stored: dict | None) -> dict | None:
+        """The object as it will be once its pending writes are written (`stored`: as it is
+        stored, if it is), which are then forgotten: a merge writes it whole."""
+        pending = self.objects.pop(object_id, None)
+        return stored if pending is None else pending.applied(object_id, stored)
+
+    def merged(self, stays, goes, twin, scene_id) -> None:
+        """A merge: `twin`'s events of the scene are no more, and the events and links of
+        `goes` pending are those of `stays` (the merge moves those written)."""
+        self.events = [e for e in self.events
+                       if e["object_id"] != twin or e["scene_id"] != scene_id]
+        for event in self.events:
+            if event["object_id"] == goes:
+                event["object_id"] = stays
+        self.links = {c: stays if o == goes else o for c, o in self.links.items()}
+        self._seen_in.pop(stays, None)
+        self._seen_in.pop(goes, None)
 
     def write(self) -> None:
         objects, events, clusters = self.targets
@@ -631,8 +644,11 @@ class Later:
         if self.events:
             events.insert_many(self.events, session=self.session)
         if self.links:
-            clusters.bulk_write(self.links, ordered=False, session=self.session)
-        self.objects, self.events, self.links = {}, [], []
+            clusters.bulk_write([UpdateOne({"_id": c}, {"$set": {"object_id": o}} if o is not None
+                                           else {"$unset": {"object_id": ""}})
+                                 for c, o in self.links.items()], ordered=False,
+                                session=self.session)
+        self.objects, self.events, self.links = {}, [], {}
 
 
 class Written:
@@ -647,14 +663,28 @@ class Written:
         self.first_seen: int | None = None
 
     def update(self, object_id, stored: dict) -> UpdateOne:
+        """The write (`stored`: the object's label weights as stored, if it is)."""
         if not self.observations:
             return UpdateOne({"_id": object_id}, {"$set": self.fields})
+        return UpdateOne({"_id": object_id}, {
+            "$set": self._set(stored), "$setOnInsert": {"first_seen": self.first_seen},
+            "$inc": {"observations": self.observations}}, upsert=True)
+
+    def applied(self, object_id, stored: dict | None) -> dict:
+        """The object as the write leaves it (`stored`: as it is stored, if it is)."""
+        doc = {"_id": object_id, "first_seen": self.first_seen} | (stored or {})
+        doc |= self._set(stored or {})
+        if self.observations:
+            doc["observations"] = doc.get("observations", 0) + self.observations
+        return doc
+
+    def _set(self, stored: dict) -> dict:
+        """The fields the write sets: when seen, the names too, over those stored."""
+        if not self.observations:
+            return self.fields
         weights = stored_weights(stored)
         weights.update(self.labels)
-        return UpdateOne({"_id": object_id}, {
-            "$set": {**self.fields, **naming_fields(weights)},
-            "$setOnInsert": {"first_seen": self.first_seen},
-            "$inc": {"observations": self.observations}}, upsert=True)
+        return {**self.fields, **naming_fields(weights)}
 
 
 def _placed(last: Observation, place, variance) -> Observation:

@@ -235,6 +235,48 @@ def test_one_object_remembered_twice_is_merged_when_its_sides_meet(empty_store):
     assert history == ["appear", "disappear", "appear", "newview"]
 
 
+def test_a_merge_in_a_batch_writes_what_the_batch_had_pending_of_both_objects(empty_store):
+    """The scenes of the test above consolidated in one batch (a rebuild's, a backlog's): the
+    merge comes while both objects' writes, events and links are still the batch's own, and
+    the belief is the one scene by scene gives."""
+    red, blue, turned = _box("red", 0.5), _box("blue", 3.5), _box("red", 3.5)
+    IngestService(empty_store).ingest_batch([_looks(0.5, red, t=0), _looks(0.5, t=1),
+                                             _looks(3.5, blue, t=2), _looks(3.5, turned, t=3)])
+    memory_pipeline(empty_store).drain(timeout=60)
+    objects = list(empty_store.db.objects.find({"map": "sides"}))
+    assert len(objects) == 1 and objects[0]["observations"] == 3
+    assert objects[0]["state"] == "present" and objects[0]["position"][0] == pytest.approx(3.5)
+    assert {empty_store.get_cluster(c.id).object_id for c in (red, blue, turned)} == {
+        objects[0]["_id"]}
+    history = [e["explanation"] for e in empty_store.db.events.find(
+        {"object_id": objects[0]["_id"]}).sort("time")]
+    assert history == ["appear", "disappear", "appear", "newview"]
+    assert empty_store.db.events.count_documents({}) == 4
+
+
+@pytest.mark.parametrize("batched", [False, True], ids=["scene by scene", "in one batch"])
+def test_a_twin_seen_gone_in_the_scene_that_merges_it_keeps_no_event_of_it(empty_store,
+                                                                          batched):
+    """Red on one table, then a blue object on another; then a look over both tables: the
+    red one is not where it was, and the blue one shows red. The two are one object, moved:
+    "gone from the first table" in that look is no event of it, whether the scenes came one
+    by one or in one batch (where the merge finds that event still the batch's own)."""
+    red, blue, turned = _box("red", 0.5), _box("blue", 3.5), _box("red", 3.5)
+    both_tables = _looks(2.0, turned, t=2)
+    both_tables.view_region = SpatialVolume(box_min=(0.0, -1.0, 0.0), box_max=(4.0, 1.0, 2.0))
+    scenes = [_looks(0.5, red, t=0), _looks(3.5, blue, t=1), both_tables]
+    if batched:
+        IngestService(empty_store).ingest_batch(scenes)
+        memory_pipeline(empty_store).drain(timeout=60)
+    else:
+        consolidate_one_by_one(empty_store, scenes)
+    (doc,) = empty_store.db.objects.find({"map": "sides"})
+    history = [(e["time"] % 10, e["explanation"]) for e in empty_store.db.events.find(
+        {"object_id": doc["_id"]}).sort("time")]
+    assert history == [(0, "appear"), (1, "hidden"), (1, "appear"), (2, "newview")]
+    assert empty_store.db.events.count_documents({}) == 4
+
+
 def test_an_object_remembered_twice_keeps_the_id_of_its_longer_history(empty_store):
     """Seen red three times, taken away and found showing blue (a new object, for a while),
     then turned back to red: one object, under the id it was known by for longer, and where

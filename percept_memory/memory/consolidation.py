@@ -574,7 +574,9 @@ class Later:
     """A batch's object writes, events and cluster links, written together (a few commands
     per batch instead of a few per scene); nothing in a batch reads them before `write` (the
     scenes' candidates are in memory: known_objects.py, and which scenes an object was seen in
-    is answered here), but a merge."""
+    is answered here; what reads links writes them first). A merge takes the two objects'
+    pending writes into the object it writes whole, and moves their pending events and links
+    here."""
 
     def __init__(self, objects, events, clusters, session):
         self.targets, self.session = (objects, events, clusters), session

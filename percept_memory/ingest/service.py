@@ -99,8 +99,7 @@ class IngestService:
         if self.json_workers is not None:
             self.json_workers.close()
 
-    def ingest_json(self, body: bytes, wait: float | None = None,
-                    ndjson: bool = False) -> list[SceneIds]:
+    def ingest_json(self, body: bytes, ndjson: bool = False) -> list[SceneIds]:
         """Store the scenes of a JSON body (a scene or a list of them, as GET
         /api/schema/scene describes), or with `ndjson` of an NDJSON body (one scene a line,
         blank lines skipped), as ingest_batch does; NotScenes when it holds none. A large
@@ -115,8 +114,6 @@ class IngestService:
             if results is None:
                 items, screened = _scenes(body, ndjson)
                 results = self.ingest_batch(items, screened=screened)
-        if wait is not None:
-            self.settled(results, wait)
         return results
 
     def _made_by_workers(self, body: bytes, ndjson: bool) -> list[SceneIds] | None:

@@ -155,9 +155,9 @@ class Pipeline:
         """One pass over every map with work: returns the scenes that went through."""
         maps = set(self.outbox.distinct("map", {"held": False}))
         maps |= {doc["_id"] for doc in self.maps.find({"rebuild": True}, {"_id": 1})}
-        return self.run_on(maps)
+        return self._run_on(maps)
 
-    def run_on(self, maps: Iterable[str]) -> int:
+    def _run_on(self, maps: Iterable[str]) -> int:
         """One pass over these maps: returns the scenes that went through."""
         return sum(self._work_on(name) for name in sorted(maps))
 
@@ -311,7 +311,7 @@ class Pipeline:
         with self._commits:
             woken, self._woken = self._woken, set()
         if time.monotonic() - self._scanned_at < self.poll_s:
-            return self.run_on(woken)
+            return self._run_on(woken)
         self._scanned_at = time.monotonic()
         return self.run_once()  # (the maps woken for have work: they are among those found)
 

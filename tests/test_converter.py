@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
+from datetime import datetime
+
 import bson
 import cv2
 import numpy as np
 import pytest
-from bson import ObjectId
+from bson import Decimal128, Int64, ObjectId
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
@@ -56,28 +59,37 @@ def test_every_registered_type_round_trips(type_name, data):
     assert back == value
 
 
-@pytest.mark.parametrize(
-    "array",
-    [
-        np.array([np.nan, -0.0, 0.0, np.inf, -np.inf], dtype="<f8"),
-        np.array([1.5, -0.0, np.nan], dtype=">f4"),  # big-endian stays big-endian
-        np.array(3.25),  # 0-d
-        np.zeros((0, 3), dtype=np.float32),  # empty
-        np.arange(24, dtype=np.int16).reshape(2, 3, 4)[:, ::2, ::-1],  # not contiguous
-        np.asfortranarray(np.arange(6, dtype=np.uint8).reshape(2, 3)),
-        np.array([(1.0, 2.0, 3.0, 0xFF00FF)],
-                 dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")]),
-        np.array([1 + 2j, np.nan * 1j], dtype="<c16"),
-    ],
-    ids=["nan-negzero-inf", "big-endian", "0-d", "empty", "strided", "fortran", "structured",
-         "complex"],
-)
-def test_numpy_edge_cases_are_bit_exact(array):
-    back = round_trip(FeatureVector(name="v", vector=array)).vector
+EDGE_CASES = {
+    "nan-negzero-inf": np.array([np.nan, -0.0, 0.0, np.inf, -np.inf], dtype="<f8"),
+    "big-endian": np.array([1.5, -0.0, np.nan], dtype=">f4"),  # stays big-endian
+    "0-d": np.array(3.25),
+    "empty": np.zeros((0, 3), dtype=np.float32),
+    "strided": np.arange(24, dtype=np.int16).reshape(2, 3, 4)[:, ::2, ::-1],
+    "fortran": np.asfortranarray(np.arange(6, dtype=np.uint8).reshape(2, 3)),
+    "structured": np.array([(1.0, 2.0, 3.0, 0xFF00FF)],
+                           dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("rgb", "<u4")]),
+    "structured-subarray": np.frombuffer(bytes(range(48)), dtype=[
+        ("xyz", "<f4", (3,)), ("rgb", "<u4"), ("n", [("ij", ">i2", (2,))], (2,))]),
+    "complex": np.array([1 + 2j, np.nan * 1j], dtype="<c16"),
+}
+
+
+def same_bits(back: np.ndarray, array: np.ndarray) -> None:
     assert back.dtype == array.dtype
     assert back.shape == array.shape
     assert back.tobytes() == np.ascontiguousarray(array).tobytes()
     assert back.flags.writeable
+
+
+@pytest.mark.parametrize("array", EDGE_CASES.values(), ids=EDGE_CASES.keys())
+def test_numpy_edge_cases_are_bit_exact(array):
+    same_bits(round_trip(FeatureVector(name="v", vector=array)).vector, array)
+
+
+@pytest.mark.parametrize("array", EDGE_CASES.values(), ids=EDGE_CASES.keys())
+def test_numpy_edge_cases_are_bit_exact_through_json(array):
+    text = FeatureVector(name="v", vector=array).model_dump_json()
+    same_bits(FeatureVector.model_validate_json(text).vector, array)
 
 
 def test_nan_payload_survives():
@@ -189,6 +201,25 @@ def test_unknown_type_keeps_every_field_and_writes_back_unchanged():
     value = decode(stored)
     assert isinstance(value, Unknown) and value.type_name == "rs.annotation.Hologram"
     assert bson.encode(encode(value)) == bson.encode(stored)
+
+
+def test_an_unknown_type_travels_through_json_as_extended_json_and_comes_back_unchanged():
+    stored = {
+        "_type": "rs.annotation.Hologram",
+        "_id": ObjectId(),
+        "depth": 3,
+        "wide": Int64(3),
+        "data": b"\x00\xff",
+        "when": datetime(2026, 11, 29, 3, 4, 5, 6000),
+        "exact": Decimal128("0.1"),
+        "nested": [{"_type": "rs.cv.Mat", "parent": ObjectId(), "cells": [Int64(2**40)]}],
+    }
+    text = decode(stored).model_dump_json()
+    assert json.loads(text)["_id"] == {"$oid": str(stored["_id"])}
+    assert json.loads(text)["wide"] == {"$numberLong": "3"}
+    back = Unknown.model_validate_json(text)
+    assert bson.encode(encode(back)) == bson.encode(stored)
+    assert type(back.fields["wide"]) is Int64 and type(back.fields["depth"]) is int
 
 
 def test_fields_a_newer_version_wrote_are_kept():

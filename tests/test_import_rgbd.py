@@ -3,6 +3,7 @@ viewpoint) and low_noise (RGB + PCD + ground-truth segments)."""
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import time
@@ -18,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from percept_memory.cli import main
 from percept_memory.ingest.rgbd import SampleError, read_pcd, read_samples
+from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.types import (
     ColorHistogram,
@@ -269,6 +271,19 @@ def test_stored_bit_exact_and_imported_once(store, kitchen, low_noise):
     assert [i.scene_id for i in again] == [i.scene_id for i in ids]
     assert not any(i.created for i in again)
     assert store.counts() == counts
+
+
+def test_a_structured_cloud_written_as_a_scene_log_reads_back_exactly(low_noise, tmp_path):
+    """The cloud's x, y, z, rgb fields travel in the array's dtype, as numpy describes it."""
+    write_scene_log(low_noise, tmp_path)
+    first = json.loads((tmp_path / "scenes.jsonl").read_text().splitlines()[0])
+    assert [field[0] for field in first["clouds"]["cloud"]["points"]["dtype"]][:3] == \
+        ["x", "y", "z"]
+    back = [Scene.model_validate(data, context={"folder": tmp_path})
+            for _, data in read_scene_log(tmp_path)]
+    for scene, read in zip(low_noise, back, strict=True):
+        assert same_array(read.clouds["cloud"].points, scene.clouds["cloud"].points)
+        assert read == scene
 
 
 # --- bad files ----------------------------------------------------------------------------------

@@ -25,7 +25,10 @@ from percept_memory.ingest.robosherlock import (
     read_database,
     read_dump,
 )
+from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory.documents import assign_ids
+from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import (
     Classification,
     FeatureVector,
@@ -254,6 +257,31 @@ def test_unknown_rs_types_survive_storage_byte_for_byte(store, objects):
         object_header = {k: v for k, v in doc.items() if k not in ("annotations", "rois", "points")}
         assert bson.encode(stored_by_id[doc["_id"]]) == bson.encode(object_header)
     assert kept == 6
+
+
+@pytest.fixture
+def another_store(store):
+    """A store on a database of its own (the module's holds the dumps' ids already)."""
+    memory = MemoryStore(store.client, f"{store.db.name}_log",
+                         gridfs_threshold=store.gridfs_threshold)
+    memory.prepare()
+    yield memory
+    store.client.drop_database(memory.db.name)
+
+
+def test_the_dumps_written_as_a_scene_log_import_back_equal(another_store, tmp_path):
+    """RoboSherlock's data handed on in the interchange format (write_scene_log): the ids,
+    bytes and 64-bit integers of the documents kept whole travel as Extended JSON and come
+    back as those values, and every pose to its last digit."""
+    scenes = [*read_dump(PNP), *read_dump(IJRR)]
+    for scene in scenes:
+        assign_ids(scene)
+    assert write_scene_log(scenes, tmp_path) == 46
+    assert '{"$oid": ' in (tmp_path / "scenes.jsonl").read_text()
+    landed = list(IngestService(another_store).ingest_stream(read_scene_log(tmp_path),
+                                                             {"folder": tmp_path}))
+    for scene, item in zip(scenes, landed, strict=True):
+        assert item.ids.created and another_store.get_scene(item.ids.scene_id) == scene
 
 
 def test_content_our_types_cannot_hold_keeps_the_document_whole():

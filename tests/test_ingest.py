@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bson import Int64, ObjectId
 from pymongo.errors import OperationFailure
 from pymongo.synchronous.client_session import ClientSession
 
@@ -88,6 +89,12 @@ MALFORMED = [
     ("array of words", f"{VFH}.vector", ["a", "b"], f"{VFH}.vector", "numbers only"),
     ("ragged array", f"{VFH}.vector", [[1, 2], [3]], f"{VFH}.vector", "inhomogeneous"),
     ("unknown dtype", f"{VFH}.vector.dtype", "float-ish", f"{VFH}.vector", "unknown dtype"),
+    ("dtype as an object", f"{VFH}.vector.dtype", {"0,": None}, f"{VFH}.vector",
+     "unknown dtype"),
+    ("structured dtype of a field without a type", f"{VFH}.vector.dtype", [["x"]],
+     f"{VFH}.vector", "unknown dtype"),
+    ("structured dtype of huge fields", f"{VFH}.vector.dtype", [["x", "<f8", [2**20, 2**20]]],
+     f"{VFH}.vector", "unknown dtype"),
     ("image that does not decode", f"{ROI}.crop.png", b64(b"\x89PNG but not really"),
      f"{ROI}.crop", "does not decode"),
     ("image path without a folder", f"{ROI}.crop", {"path": "crop.png"}, f"{ROI}.crop",
@@ -308,6 +315,19 @@ def test_the_published_example_ingests(store):
     stored = store.get_scene(ids.scene_id)
     assert stored.clusters[0].annotations[-1].type_name == "lab.annotation.Weight"
     assert stored.clusters[0].hypotheses[0].crop.data.shape == (8, 8, 3)
+
+
+def test_an_unknown_types_extended_json_values_are_stored_as_the_bson_values(store):
+    scene = valid_scene(seed=8, timestamp=STAMP + 80)
+    scene["clusters"][0]["annotations"].append({
+        "_type": "lab.annotation.Ref", "object": {"$oid": "5f0000000000000000000001"},
+        "raw": {"$binary": {"base64": "AP8=", "subType": "00"}}, "count": {"$numberLong": "5"},
+        "note": {"text": "plain objects stay objects"}})
+    ids = IngestService(store).ingest(json.loads(json.dumps(scene)))
+    stored = store.clusters.find_one({"_id": ids.cluster_ids[0]})["annotations"][-1]
+    assert stored["object"] == ObjectId("5f0000000000000000000001")
+    assert stored["raw"] == b"\x00\xff" and type(stored["count"]) is Int64
+    assert stored["note"] == {"text": "plain objects stay objects"}
 
 
 @pytest.mark.parametrize("fmt, extension", [("png", ".png"), ("jpeg", ".jpg")])

@@ -12,10 +12,28 @@ from .blobs import ConversionError, DecodeContext, EncodeContext
 
 
 def _as_tuples(descr):
-    """BSON turns the tuples of a structured dtype description into lists; numpy wants tuples."""
-    if isinstance(descr, list):
-        return [tuple(_as_tuples(part) for part in field) for field in descr]
-    return descr
+    """BSON and JSON turn the tuples of a structured dtype description into lists; numpy wants
+    each field as a tuple (name or (title, name), type, and a subarray's shape if any)."""
+    if isinstance(descr, str):
+        return descr
+    if not isinstance(descr, list):  # numpy reads more (dicts, tuples), but not from us
+        raise TypeError(f"a dtype is a string or a list of fields, not {type(descr).__name__}")
+    if not all(isinstance(field, list | tuple) for field in descr):
+        raise TypeError("each field of a structured dtype is a list: name, type (, shape)")
+    fields = []
+    for name, kind, *shape in descr:
+        fields.append((tuple(name) if isinstance(name, list) else name, _as_tuples(kind),
+                       *map(tuple, shape)))
+    return fields
+
+
+def dtype_of(descr) -> np.dtype:
+    """The dtype a description (numpy's `dtype_to_descr`: "<f4", or a structured dtype's
+    [name, type] pairs, as BSON and JSON keep them) stands for. Raises TypeError, ValueError."""
+    try:
+        return np.lib.format.descr_to_dtype(_as_tuples(descr))
+    except SyntaxError:  # numpy parses "f4,i4"-like type strings as Python
+        raise ValueError(f"{str(descr)[:40]!r} is not a dtype") from None
 
 
 def encode_array_fields(array: np.ndarray, ctx: EncodeContext) -> dict:
@@ -30,7 +48,7 @@ def encode_array_fields(array: np.ndarray, ctx: EncodeContext) -> dict:
 
 def decode_array_fields(doc: dict, ctx: DecodeContext) -> np.ndarray:
     try:
-        dtype = np.lib.format.descr_to_dtype(_as_tuples(doc["dtype"]))
+        dtype = dtype_of(doc["dtype"])
         flat = np.frombuffer(ctx.binary(doc["data"]), dtype=dtype)
         return flat.reshape(doc["shape"]).copy()  # a writable array the caller owns
     except (KeyError, TypeError, ValueError) as error:

@@ -22,9 +22,10 @@ from datetime import UTC, datetime
 from typing import Any, Protocol
 
 from bson import ObjectId
-from pydantic import BaseModel, model_serializer, model_validator
+from pydantic import BaseModel, SerializationInfo, model_serializer, model_validator
 
 from .blobs import ConversionError, DecodeContext, EncodeContext
+from .extended_json import from_extended_json, to_extended_json
 from .registry import Typed, class_for, close_names, is_reserved, name_of
 
 TYPE_KEY = "_type"
@@ -65,6 +66,7 @@ class Unknown(Typed):
 
     `fields` is the stored document as it was read, `_type` where it stood, and it writes
     back unchanged, so data written by a newer version, or by RoboSherlock, is never lost.
+    In JSON, the BSON values JSON has no type for are MongoDB Extended JSON (extended_json.py).
     """
 
     type_name: str
@@ -74,7 +76,8 @@ class Unknown(Typed):
     @model_validator(mode="before")
     @classmethod
     def _from_document(cls, data: Any) -> Any:
-        """A plain document with an unregistered `_type` (from JSON) is kept as it is."""
+        """A plain document with an unregistered `_type` (from JSON) is kept as it is, its
+        Extended JSON values read as the BSON values they stand for."""
         if not isinstance(data, Mapping) or TYPE_KEY not in data or "fields" in data:
             return data
         name = data[TYPE_KEY]
@@ -88,7 +91,7 @@ class Unknown(Typed):
             hint = close_names(name)
             raise ValueError(f"unknown type {name!r}" + (f"; did you mean {hint[0]!r}?" if hint
                                                           else ""))
-        return {"type_name": name, "fields": dict(data)}
+        return {"type_name": name, "fields": from_extended_json(dict(data))}
 
     @model_validator(mode="after")
     def _fields_carry_the_type(self) -> Unknown:
@@ -97,8 +100,8 @@ class Unknown(Typed):
         return self
 
     @model_serializer
-    def _as_stored(self) -> dict:
-        return self.fields
+    def _as_stored(self, info: SerializationInfo) -> dict:
+        return to_extended_json(self.fields) if info.mode_is_json() else self.fields
 
 
 # --- encoding and decoding of tagged documents --------------------------------------------

@@ -7,7 +7,9 @@ input gets a 422 naming the field instead of a server error (README: Security).
 - integers: 64 bits at most (MongoDB's);
 - strings: UTF-8 encodable (no lone surrogate such as "\\ud800"), at most MAX_STRING
   characters (pixels and array bytes in base64 aside: their own limits apply);
-- field names: no NUL, none starting with `$` (MongoDB's operators).
+- field names: no NUL, none starting with `$` (MongoDB's operators), but for the MongoDB
+  Extended JSON values (`{"$oid": ...}`) that an unknown type's fields may hold, checked here
+  as the values they stand for (converters/extended_json.py).
 
 Walking every value of a parsed batch costs more than parsing it, so `parse` first screens the
 raw bytes: what the screen clears cannot hold any of these problems and need not be walked;
@@ -21,6 +23,8 @@ import re
 from typing import Any
 
 from pydantic_core import from_json
+
+from percept_memory.converters.extended_json import WRAPPERS, from_extended_json
 
 MAX_DEPTH = 32
 MAX_STRING = 2**20  # characters of one text, label, log message...
@@ -115,6 +119,11 @@ def input_problems(data: Any) -> list[dict]:
         path, value = stack.pop()
         if isinstance(value, dict | list) and len(path) >= MAX_DEPTH:
             problems.append(_problem(path, f"nested too deeply (at most {MAX_DEPTH} levels)"))
+        elif isinstance(value, dict) and next(iter(value), None) in WRAPPERS:
+            try:
+                from_extended_json(value)
+            except ValueError as error:
+                problems.append(_problem(path, str(error)))
         elif isinstance(value, dict):
             for key, item in value.items():
                 if message := _bad_key(str(key)):  # named by the object that has it

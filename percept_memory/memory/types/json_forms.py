@@ -1,7 +1,9 @@
 """How arrays and images travel in JSON (scene interchange format v1).
 
 An array is given as nested lists of numbers, as `{"dtype": "<f4", "shape": [308],
-"base64": "..."}` (exact: any dtype, NaN, byte order), or as `{"path": "arrays/vfh.npy"}`.
+"base64": "..."}` (exact: any dtype, NaN, byte order; a structured dtype, such as a point
+cloud's x, y, z, rgb, as numpy describes it: [["x", "<f4"], ...]), or as
+`{"path": "arrays/vfh.npy"}`.
 An image is given as `{"png": "<base64>"}`, `{"jpeg": "<base64>"}`, `{"path": "rgb.png"}`,
 or as `{"data": <array>}`, each with its `encoding`. Paths are relative to the scene-log folder
 the scene was read from (passed to validation as context `{"folder": Path}`) and may not leave
@@ -19,6 +21,7 @@ import numpy as np
 from pydantic import ValidationInfo
 
 from percept_memory.converters import ConversionError
+from percept_memory.converters.arrays import dtype_of
 from percept_memory.converters.images import compress, decode_file, png_compatible
 
 MAX_ARRAY_BYTES = 512 * 2**20  # one value; a whole HTTP request is limited separately
@@ -81,9 +84,9 @@ def _array_from_base64(value: dict) -> np.ndarray:
     if set(value) != {"dtype", "shape", "base64"}:
         raise ValueError("an array object has exactly the keys dtype, shape and base64 (or path)")
     try:
-        dtype = np.dtype(value["dtype"])
-    except TypeError:
-        raise ValueError(f"unknown dtype {value['dtype']!r}") from None
+        dtype = dtype_of(value["dtype"])
+    except (TypeError, ValueError, KeyError, IndexError):
+        raise ValueError(f"unknown dtype {str(value['dtype'])[:80]}") from None
     shape = value["shape"]
     if not isinstance(shape, list) or not all(isinstance(n, int) and n >= 0 for n in shape):
         raise ValueError("shape must be a list of non-negative integers")
@@ -100,7 +103,7 @@ def _array_from_base64(value: dict) -> np.ndarray:
 
 def array_to_json(array: np.ndarray) -> dict:
     return {
-        "dtype": array.dtype.str,
+        "dtype": np.lib.format.dtype_to_descr(array.dtype),
         "shape": list(array.shape),
         "base64": base64.b64encode(np.ascontiguousarray(array).tobytes()).decode(),
     }

@@ -39,7 +39,10 @@ NDArray = Annotated[
         "anyOf": [
             {"type": "array"},
             {"type": "object", "required": ["dtype", "shape", "base64"], "properties": {
-                "dtype": {"type": "string", "examples": ["<f4", "|u1"]},
+                "dtype": {"description": "numpy's description of the dtype: a string, or a "
+                                         "structured dtype's [name, type] pairs",
+                          "anyOf": [{"type": "string"}, {"type": "array"}],
+                          "examples": ["<f4", "|u1", [["x", "<f4"], ["y", "<f4"]]]},
                 "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}},
                 "base64": {"type": "string", "contentEncoding": "base64"}},
              "additionalProperties": False},
@@ -50,6 +53,7 @@ NDArray = Annotated[
 ]
 """A numpy array of numbers, stored exactly (dtype, shape, bytes)."""
 
+UNIT = 1e-12  # a quaternion this close to length 1 is a unit quaternion
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 Vec3 = tuple[Finite, Finite, Finite]
 """x, y, z in metres."""
@@ -75,6 +79,8 @@ class Pose(Model):
         norm = math.sqrt(sum(c * c for c in rotation))
         if not 0.5 < norm < 1.5:
             raise ValueError(f"rotation quaternion must have length 1, has {norm:.3g}")
+        if abs(norm - 1) <= UNIT:  # unit already: dividing again moves its last digits, and a
+            return rotation  # scene written out and read back would not be the same scene
         return tuple(c / norm for c in rotation)  # type: ignore[return-value]
 
     def matrix(self) -> np.ndarray:

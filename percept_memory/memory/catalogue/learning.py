@@ -79,7 +79,9 @@ class Learner:
         self.members: dict[Hashable, frozenset] = {}
         self.singletons: set[Hashable] = set()
         self._union: dict[Hashable, Counter] = {}  # cluster -> element -> models holding it
-        self._index: dict[str, set[Hashable]] = {}  # element -> clusters whose union holds it
+        # element -> the clusters whose union holds it: the cluster itself when it is the only
+        # one (most elements: a set each cost a fifth of a learner's memory), else their set
+        self._index: dict[str, Hashable | set[Hashable]] = {}
         self._dissolved: set[Hashable] = set()  # clusters to recompute
         self._modalities: Counter = Counter()  # modality -> models holding it
         self.changed: set[Hashable] = set()  # models added, removed, relinked or moved
@@ -93,13 +95,18 @@ class Learner:
         first (ties by cluster name). The candidates are the clusters sharing an element that
         few clusters hold (as a text retrieval engine skips stop words); only when there is
         none, those sharing common ones ("box", "red"). A candidate's score is exact."""
-        rare, common = [], []
+        alone, rare, common = [], [], []
         for element in graph.elements:
             clusters = self._index.get(element)
-            if clusters is not None:
+            if clusters is None:
+                continue
+            if type(clusters) is not set:
+                alone.append(clusters)
+            else:
                 (common if len(clusters) > self.params.common_element else rare).append(clusters)
         # counted in one call each: a model shares hundreds of elements with the memory
-        hits = Counter(chain.from_iterable(rare))
+        hits = Counter(alone)
+        hits.update(chain.from_iterable(rare))
         if hits:
             found = hits.keys()
             hits.update(chain.from_iterable(found & clusters for clusters in common))
@@ -386,15 +393,20 @@ class Learner:
         for element in elements:
             holders = index.get(element)
             if holders is None:
-                index[element] = {name}
-            else:
+                index[element] = name
+            elif type(holders) is set:
                 holders.add(name)
+            elif holders != name:
+                index[element] = {holders, name}
 
     def _index_discard(self, elements: Iterable[str], name: Hashable) -> None:
         """The cluster's union holds these elements no more."""
         index = self._index
         for element in elements:
             holders = index[element]
+            if type(holders) is not set:
+                del index[element]  # (it was this cluster)
+                continue
             holders.discard(name)
-            if not holders:
-                del index[element]
+            if len(holders) == 1:
+                index[element] = holders.pop()

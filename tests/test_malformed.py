@@ -71,6 +71,8 @@ CORPUS = [(name, path, value, where) for name, path, value, where, _ in MALFORME
     ("Extended JSON code, which is not read", NEW,
      {"_type": "lab.annotation.Ref", "f": {"$code": "x"}}, f"{NEW}.f"),
     ("Extended JSON id where a text belongs", f"{A}.0.source", {"$oid": ONE_ID}, f"{A}.0.source"),
+    ("Extended JSON nested too deeply", NEW,
+     {"_type": "lab.annotation.Ref", "v": {"$oid": nested(900)}}, f"{NEW}.v"),
     ("NUL in a mapping key", f"{A}.1.confidences.a\0", 0.1, f"{A}.1.confidences"),
     ("robot name too long", "robot", "r" * 201, "robot"),
     ("map name too long", "map", "m" * 201, "map"),

@@ -20,6 +20,7 @@ WRAPPERS = frozenset({
     "$oid", "$date", "$binary", "$uuid", "$numberDecimal", "$numberLong", "$numberInt",
     "$numberDouble", "$timestamp", "$regularExpression", "$minKey", "$maxKey"})
 """The first key of an Extended JSON value read back (see the module's docstring)."""
+MAX_DEPTH = 100  # MongoDB's: a document nested deeper is not stored
 
 
 def to_extended_json(document: dict) -> dict:
@@ -56,12 +57,15 @@ def extended_value(candidate: dict) -> tuple[bool, Any]:
     return True, value
 
 
-def from_extended_json(value: Any) -> Any:
-    """The value with its Extended JSON objects read as the BSON values they stand for."""
+def from_extended_json(value: Any, depth: int = MAX_DEPTH) -> Any:
+    """The value with its Extended JSON objects read as the BSON values they stand for (read
+    inside out, as bson.json_util does: `{"$date": {"$numberLong": ...}}`)."""
+    if isinstance(value, list | dict) and depth <= 0:
+        raise ValueError(f"nested deeper than MongoDB stores ({MAX_DEPTH} levels)")
     if isinstance(value, list):
-        return [from_extended_json(item) for item in value]
+        return [from_extended_json(item, depth - 1) for item in value]
     if not isinstance(value, dict):
         return value
-    inner = {key: from_extended_json(item) for key, item in value.items()}
+    inner = {key: from_extended_json(item, depth - 1) for key, item in value.items()}
     found, bson_value = extended_value(inner)
     return bson_value if found else inner

@@ -17,7 +17,6 @@ import gc
 import json
 import logging
 import os
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -286,10 +285,10 @@ def import_robosherlock(settings: Settings, folder: Path | None, uri: str | None
 
 def _iso_time(_ctx, _param, value: str | None) -> int | None:
     """An ISO 8601 time (naive is UTC) as nanoseconds since the epoch."""
-    from percept_memory.memory.types import timestamp_from_datetime
+    from percept_memory.memory.types import timestamp_from_iso
 
     try:
-        return None if value is None else timestamp_from_datetime(datetime.fromisoformat(value))
+        return None if value is None else timestamp_from_iso(value)
     except ValueError:
         raise click.BadParameter(f"expected an ISO 8601 time such as 2018-03-28T15:13:07Z, "
                                  f"got {value!r}") from None

@@ -51,6 +51,8 @@ DELETE = object()
 MALFORMED = [
     ("missing timestamp", "timestamp", DELETE, "timestamp", "required"),
     ("timestamp as text", "timestamp", "yesterday", "timestamp", "integer"),
+    ("timestamp as digits in a string", "timestamp", "1500000000000000000", "timestamp",
+     "not a string"),
     ("negative timestamp", "timestamp", -5, "timestamp", "greater than or equal"),
     ("timestamp past int64", "timestamp", 2**64, "timestamp", "less than"),
     ("robot as a number", "robot", 7, "robot", "string"),

@@ -17,6 +17,7 @@ from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.queries.engine import QUERIES, QueryEngine
 from percept_memory.webui.app import create_app
+from percept_memory.webui.html import nanoseconds
 from percept_memory.webui.queries import PATHS
 
 from .conftest import LOCAL
@@ -185,6 +186,21 @@ def test_pmem_query_answers_on_the_command_line(mongo_uri, db_name, kitchen):
     assert at.exit_code == 0 and json.loads(at.stdout)["objects"]
     bad = run(main, ["query", "clusters", "--limit", "9999"], env=env)
     assert bad.exit_code == 1 and "limit" in bad.output
+
+
+def test_a_time_printed_to_the_nanosecond_is_read_back_to_the_nanosecond(
+        client, mongo_uri, db_name, kitchen):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+    run = CliRunner().invoke
+    where = run(main, ["query", "where-is", "Heinz", "--limit", "1", "--json"], env=env)
+    (heinz,) = json.loads(where.stdout)
+    seen, seen_ns = heinz["last_seen"], heinz["last_seen_ns"]
+    assert seen_ns % 1000  # (a datetime would keep its microseconds only)
+    at = run(main, ["query", "what-is-at", "--region", "shelf", "--t", seen, "--json"], env=env)
+    assert json.loads(at.stdout)["t_ns"] == seen_ns
+    answer = client.get(path("what-is-at"), params={"region": "shelf", "t": seen})
+    assert answer.json()["t"] == seen_ns
+    assert nanoseconds(seen, "t") == seen_ns  # the pages' reading of a time
 
 
 def test_pmem_query_takes_the_subject_as_argument_and_where_and_when_as_options(

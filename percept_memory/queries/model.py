@@ -33,7 +33,12 @@ from pydantic import (
 from percept_memory.converters import class_for, name_of, registered_types
 from percept_memory.converters.registry import close_names, is_reserved
 from percept_memory.memory.search_keys import field_key, field_path, normal_label, words
-from percept_memory.memory.types import Annotation, Id, timestamp_from_datetime
+from percept_memory.memory.types import (
+    Annotation,
+    Id,
+    timestamp_from_datetime,
+    timestamp_from_iso,
+)
 
 MAX_PAGE = 500
 MAX_K = 1000
@@ -54,7 +59,7 @@ def _nanoseconds(value: Any) -> Any:
         if value.strip().isdigit():
             return int(value)
         try:
-            return timestamp_from_datetime(datetime.fromisoformat(value.strip()))
+            return timestamp_from_iso(value)
         except ValueError:
             raise ValueError(f"expected nanoseconds since the epoch or an ISO 8601 time such "
                              f"as 2024-03-05T08:00, got {value!r}") from None

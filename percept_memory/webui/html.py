@@ -11,7 +11,6 @@ Jinja2 escapes every value, so OCR text, web results and annotator logs are show
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
 from pathlib import Path
 
 from bson import ObjectId
@@ -19,7 +18,7 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 
-from percept_memory.memory.types import Correction
+from percept_memory.memory.types import Correction, timestamp_from_iso
 from percept_memory.memory.types.curation import in_force, verdict
 
 from . import render
@@ -83,13 +82,10 @@ def parse_id(text: str, kind: str) -> ObjectId:
 def nanoseconds(text: str, name: str) -> int:
     """An ISO 8601 date or time (UTC unless it says otherwise) as nanoseconds since the epoch."""
     try:
-        moment = datetime.fromisoformat(text)
+        return timestamp_from_iso(text)
     except ValueError:
         raise PageError(422, f"{name}: {text!r} is not a date or time such as "
                              "2024-05-06T08:30") from None
-    if moment.tzinfo is None:
-        moment = moment.replace(tzinfo=UTC)
-    return int(moment.timestamp() * 1_000_000) * 1000
 
 
 def bounded_int(text: str, name: str, low: int, high: int) -> int:

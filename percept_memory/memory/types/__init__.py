@@ -30,6 +30,7 @@ from .base import (
     datetime_from_timestamp,
     stored_type,
     timestamp_from_datetime,
+    timestamp_from_iso,
 )
 from .curation import Correction, DifferentObject, Rejection, Relabel, SameObject, Undo
 from .hypotheses import Hypothesis, ImageROI, PointCluster, SpatialVolume
@@ -46,4 +47,5 @@ __all__ = [
     "Relation", "SameObject", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text",
     "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "VisualWords", "WebLookup",
     "datetime_from_timestamp", "stored_type", "timestamp_from_datetime",
+    "timestamp_from_iso",
 ]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from datetime import UTC, datetime
 from typing import Annotated, Any
 
@@ -57,9 +58,11 @@ Id = Annotated[
 """A MongoDB ObjectId; JSON carries it as 24 hex digits."""
 
 
-def _not_a_bool(value: Any) -> Any:
+def _an_integer(value: Any) -> Any:
     if isinstance(value, bool):  # an int to Python: `true` would be stored as 1 ns
         raise ValueError("a timestamp is an integer, not true or false")
+    if isinstance(value, str):  # (pydantic would read "15..." as the number)
+        raise ValueError("a timestamp is an integer of nanoseconds, not a string")
     return value
 
 
@@ -69,7 +72,7 @@ to whole seconds)."""
 
 Timestamp = Annotated[
     int,
-    BeforeValidator(_not_a_bool),
+    BeforeValidator(_an_integer),
     Field(ge=0, le=MAX_TIMESTAMP, description="nanoseconds since the Unix epoch, UTC"),
 ]
 """Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it (1970 to 2262)."""
@@ -81,6 +84,24 @@ def timestamp_from_datetime(moment: datetime) -> int:
         moment = moment.replace(tzinfo=UTC)
     delta = moment - datetime(1970, 1, 1, tzinfo=UTC)
     return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+
+
+FRACTION = re.compile(r"(\d\d:\d\d:\d\d)[.,](\d+)")
+
+
+def timestamp_from_iso(text: str) -> int:
+    """Nanoseconds since the epoch of an ISO 8601 date or time (naive means UTC), every digit
+    of its fraction of a second kept: a datetime keeps six, and a time printed to the
+    nanosecond must find the scene it names. Raises ValueError."""
+    text = text.strip()
+    nanoseconds = 0
+    if fraction := FRACTION.search(text):
+        digits = fraction.group(2)
+        if len(digits) > 9:
+            raise ValueError(f"{text!r} has more digits than nanoseconds")
+        nanoseconds = int(digits.ljust(9, "0"))
+        text = text[:fraction.end(1)] + text[fraction.end(2):]
+    return timestamp_from_datetime(datetime.fromisoformat(text)) + nanoseconds
 
 
 def datetime_from_timestamp(nanoseconds: int) -> datetime:

@@ -821,7 +821,7 @@ def _export_params() -> list[click.Parameter]:
 def _export(settings: Settings, out: Path, **given: Any) -> None:
     from percept_memory.memory.store import MemoryStore
     from percept_memory.queries.export.model import ExportQuery
-    from percept_memory.queries.export.run import Export
+    from percept_memory.queries.export.run import Export, NothingExported
 
     query = model_from_options(ExportQuery, given)
     with MemoryStore.open(settings) as store:
@@ -832,12 +832,10 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
             task = bar.add_task("clusters", total=export.total)
             try:
                 summary = export.save(out, lambda done: bar.advance(task, done))
-            except FileExistsError as error:
+            except (FileExistsError, NothingExported) as error:
                 raise click.ClickException(str(error)) from None
             except OSError as error:  # a missing folder, no permission, a full disk
                 raise click.ClickException(f"cannot write {out}: {error.strerror}") from None
-    if not summary.exported:
-        raise click.ClickException(f"{summary.why_empty()} (see {out}'s manifest.json)")
     click.echo(f"exported {summary.exported} clusters to {out}"
                + (f"; skipped: {summary.skipped_text()}" if summary.skipped else ""))
 

@@ -239,7 +239,8 @@ def test_jsonl_keeps_only_the_features_asked_for(memory):
     assert len(rows) == SYNTH_SCENES * SYNTH_CLUSTERS
     assert all(set(r["features"]) == {"VFH"} for r in rows)
     _, none = exported(memory, format="jsonl", robot=["pr2"], feature=["VFH"], limit=20)
-    assert json.loads(none.read("manifest.json"))["skipped"] == {"no feature vector named VFH": 20}
+    assert json.loads(none.read("manifest.json"))["skipped"] == {
+        "no feature vector named VFH": memory.clusters.count_documents({"search.robot": "pr2"})}
 
 
 # --- determinism, streaming, label sources --------------------------------------------------
@@ -263,9 +264,12 @@ def test_the_zip_streams_as_it_is_written(memory):
 
 
 def test_clusters_without_a_label_from_the_source_are_skipped_and_counted(memory):
+    """A limit counts the clusters exported: with none labelled, every selected one is
+    skipped (and said so), not just the first `limit`."""
     _, archive = exported(memory, format="jsonl", robot=["pr2"], label="detection", limit=50)
     manifest = json.loads(archive.read("manifest.json"))
-    assert manifest["exported"] == 0 and manifest["skipped"] == {"no detection label": 50}
+    assert manifest["exported"] == 0 and manifest["skipped"] == {
+        "no detection label": memory.clusters.count_documents({"search.robot": "pr2"})}
     _, by_text = exported(memory, format="jsonl", robot=["pr2"], label="text", limit=50)
     texts = lines(by_text, "provenance.jsonl")
     assert texts and all(p["annotator"] == "OCRAnnotator" for p in texts)
@@ -277,6 +281,21 @@ def test_the_limit_takes_the_oldest(memory):
     oldest = [d["search"]["time"] for d in memory.clusters.find({"search.robot": "pr2"}).sort(
         [("search.time", 1), ("_id", 1)]).limit(10)]
     assert times == oldest
+
+
+def test_the_limit_counts_the_clusters_exported_not_those_skipped(memory):
+    """The oldest selected clusters have no label from this source: a limit of 10 still
+    exports the 10 oldest that have one."""
+    labelled = [d["_id"] for d in memory.clusters.find(
+        {"search.robot": "pr2", "annotations._type": "pm.annotation.Text"}).sort(
+        [("search.time", 1), ("_id", 1)]).limit(10)]
+    first = memory.clusters.find({"search.robot": "pr2"}).sort(
+        [("search.time", 1), ("_id", 1)]).limit(20)
+    assert len(labelled) == 10 and any(d["_id"] not in labelled for d in first)
+    _, archive = exported(memory, format="jsonl", robot=["pr2"], label="text", limit=10)
+    rows = lines(archive, "provenance.jsonl")
+    assert [ObjectId(p["cluster_id"]) for p in rows] == labelled
+    assert json.loads(archive.read("manifest.json"))["exported"] == 10
 
 
 # --- HTTP API and CLI -----------------------------------------------------------------------
@@ -357,9 +376,12 @@ def test_pmem_export_of_nothing_fails_and_says_why(memory, mongo_uri, db_name, t
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
     run = CliRunner().invoke(main, ["export", "coco", "--robot", "pnp09",
                                     "--out", str(tmp_path / "pnp.zip")], env=env)
-    assert run.exit_code == 1
+    assert run.exit_code == 1 and not (tmp_path / "pnp.zip").exists()
     assert "Error: nothing exported: every selected cluster was skipped: 9 (no classification " \
            "label)" in run.output
+    run = CliRunner().invoke(main, ["export", "imagefolder", "--robot", "pnp09",
+                                    "--out", str(tmp_path / "pnp")], env=env)
+    assert run.exit_code == 1 and not (tmp_path / "pnp").exists()
     run = CliRunner().invoke(main, ["export", "coco", "--robot", "nobody",
                                     "--out", str(tmp_path / "none.zip")], env=env)
     assert run.exit_code == 1 and not (tmp_path / "none.zip").exists()

@@ -31,7 +31,8 @@ class ExportQuery(ClusterFilter):
         default=[], description="jsonl: feature vector names (VFH, Caffe, color_histogram); "
                                 "all a cluster has if none given")
     limit: Annotated[int, Field(ge=1, le=MAX_EXPORT)] | None = Field(
-        default=None, description="export at most this many clusters (the oldest)")
+        default=None, description="export at most this many clusters: the oldest that have "
+                                  "a label from `label`")
 
     @model_validator(mode="after")
     def _options_fit_the_format(self):

@@ -1,7 +1,8 @@
 """An export from start to end: select, label, write, and say what was left out.
 
     export = Export(store, ExportQuery(format="coco", region=["table"]))
-    export.total                         # clusters selected (the query is checked here)
+    export.total                         # clusters selected, at most `limit` (the query is
+                                         # checked here)
     for chunk in export.zip_stream(): ...  # the zip, a chunk at a time
     export.started()                     # the same, NothingExported if nothing would be in it
     export.save(Path("out.zip"))         # or a folder: export.save(Path("out"))
@@ -13,6 +14,7 @@ exported (`corrected`: how many of them with a person's label), how many were sk
 
 from __future__ import annotations
 
+import shutil
 from collections.abc import Callable, Iterator
 from itertools import chain
 from pathlib import Path
@@ -52,9 +54,12 @@ class Export:
     def write(self, archive: Archive) -> Iterator[int]:
         """Write the export into `archive`, yielding how many clusters each step handled."""
         writer = WRITERS[self.query.format](archive, self.query, self.summary)
+        limit = self.query.limit  # of clusters exported, not selected: skipped ones are not
         for group in self.selection.groups():
             items = []
             for cluster in group.clusters:
+                if limit is not None and len(items) == limit - self.summary.exported:
+                    break
                 if rejected(cluster.annotations):
                     writer.skip(REJECTED)
                 elif (label := label_of(cluster, self.query.label, group.object_names)) is None:
@@ -63,6 +68,8 @@ class Export:
                     items.append(Item(group.scene, cluster, label))
             writer.add(items)
             yield len(group.clusters)
+            if limit is not None and self.summary.exported == limit:
+                break
         writer.finish()
         add_json(archive, "manifest.json", self._manifest(writer))
 
@@ -88,12 +95,25 @@ class Export:
         raise NothingExported(self.summary.why_empty())
 
     def save(self, path: Path, progress: Callable[[int], None] = lambda done: None) -> Summary:
-        """Write the export to a zip file (a path ending in .zip) or a new folder."""
-        if path.suffix.lower() == ".zip":
-            with path.open("xb") as file:
-                self._save(ZipArchive(file), progress)
-        else:
-            self._save(FolderArchive(path), progress)
+        """Write the export to a zip file (a path ending in .zip) or a new folder. An export
+        that fails, or holds nothing (NothingExported), leaves nothing at `path`: a script that
+        finds the file finds an export."""
+        made = False
+        try:
+            if path.suffix.lower() == ".zip":
+                with path.open("xb") as file:
+                    made = True
+                    self._save(ZipArchive(file), progress)
+            else:
+                archive = FolderArchive(path)  # (a path that exists already is refused)
+                made = True
+                self._save(archive, progress)
+            if not self.summary.exported:
+                raise NothingExported(self.summary.why_empty())
+        except BaseException:
+            if made:
+                _remove(path)
+            raise
         return self.summary
 
     def _save(self, archive, progress: Callable[[int], None]) -> None:
@@ -112,3 +132,11 @@ class Export:
             "skipped": dict(sorted(self.summary.skipped.items())),
             "classes": list(writer.classes),
         }
+
+
+def _remove(path: Path) -> None:
+    """The zip file or folder an export was writing."""
+    if path.is_dir():
+        shutil.rmtree(path)
+    else:
+        path.unlink(missing_ok=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from itertools import groupby, islice
+from itertools import groupby
 
 from bson import ObjectId
 
@@ -50,8 +50,8 @@ class Selection:
         self.pages = ClusterQuery(**dict(query.cluster_filter()), sort="oldest", limit=PAGE)
 
     def count(self) -> int:
-        """How many clusters will be exported (also checks the query can run: a text
-        without words, say, fails here, before anything is written)."""
+        """How many clusters are selected, at most the export's limit (also checks the query
+        can run: a text without words, say, fails here, before anything is written)."""
 
         def plan():
             match, _ = yield from compiled(self.query)
@@ -61,7 +61,8 @@ class Selection:
         return total if self.query.limit is None else min(total, self.query.limit)
 
     def groups(self) -> Iterator[SceneGroup]:
-        """The scenes in time order, each with its selected clusters."""
+        """The scenes in time order, each with its selected clusters (read a page at a time as
+        the caller goes on: an export stops once it has its limit of labelled clusters)."""
         waiting: list[tuple[int, Cluster]] = []
         for page, last in self._pages():
             ready = waiting + page
@@ -70,14 +71,12 @@ class Selection:
 
     def _pages(self) -> Iterator[tuple[list[tuple[int, Cluster]], bool]]:
         """Pages of (time, whole cluster) in time, then id order, and whether it is the last."""
-        query, left = self.pages, self.query.limit
+        query = self.pages
         while True:
             found = self.runner.run(find_clusters(query))
-            hits = list(islice(found.items, left))
-            left = None if left is None else left - len(hits)
-            by_id = self.store.get_clusters([hit.id for hit in hits])
-            last = found.next is None or left == 0
-            yield [(hit.time, by_id[hit.id]) for hit in hits if hit.id in by_id], last
+            by_id = self.store.get_clusters([hit.id for hit in found.items])
+            last = found.next is None
+            yield [(hit.time, by_id[hit.id]) for hit in found.items if hit.id in by_id], last
             if last:
                 return
             query = query.model_copy(update={"cursor": found.next})

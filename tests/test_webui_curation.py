@@ -96,6 +96,7 @@ def error_of(answer, status: int) -> dict:
     ({"label": "mug"}, "body.author"),
     ({"author": "ana"}, "body.label"),
     ({"label": ["mug"], "author": "ana"}, "body.label"),
+    ({"label": "mug", "author": "ana", "time": 5}, "body.time"),  # not ours to set: refused
 ])
 def test_a_bad_relabel_is_a_422_naming_the_field_and_writes_nothing(client, memory, body, path):
     (doc,) = clusters_of_objects(memory, 1, skip=60)
@@ -104,6 +105,14 @@ def test_a_bad_relabel_is_a_422_naming_the_field_and_writes_nothing(client, memo
                                  json=body), 422)
     assert path in [p["path"] for p in error["problems"]]
     assert memory.clusters.find_one({"_id": doc["_id"]})["annotations"] == before
+
+
+def test_a_misspelt_field_of_a_correction_is_refused_not_dropped(client, memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=61)
+    error = error_of(client.post(f"/api/clusters/{doc['_id']}/reject", headers=JSON,
+                                 json={"author": "ana", "reson": "a reflection"}), 422)
+    assert "body.reson" in [p["path"] for p in error["problems"]]
+    assert not memory.clusters.find_one({"_id": doc["_id"], "annotations.author": "ana"})
 
 
 def test_unknown_and_malformed_ids_are_refused_not_crashed_on(client):

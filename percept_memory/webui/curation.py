@@ -25,7 +25,7 @@ from bson import ObjectId
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from percept_memory.memory import curation
 from percept_memory.memory.errors import NotFound
@@ -46,27 +46,34 @@ MERGE_CANDIDATES = 20
 BODY_FIELDS = {"class_name": "label"}  # a correction's fields as the request bodies name them
 
 
-class Relabelling(BaseModel):
+class Body(BaseModel):
+    """A correction's request body: a field it does not know is an error, not dropped (a
+    misspelt `reson` would lose the reason)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Relabelling(Body):
     label: str = Field(description="the class or name of the object seen (1-200 characters)")
     author: str = Field(description="who corrects (1-100 characters)")
 
 
-class Rejecting(BaseModel):
+class Rejecting(Body):
     author: str = Field(description="who corrects (1-100 characters)")
     reason: str = Field(default="", description="why the detection is wrong (optional)")
 
 
-class Merging(BaseModel):
+class Merging(Body):
     other: Id = Field(description="the other cluster (or object) showing the same object")
     author: str = Field(description="who corrects (1-100 characters)")
 
 
-class Splitting(BaseModel):
+class Splitting(Body):
     clusters: list[Id] = Field(description="the object's observations that show another object")
     author: str = Field(description="who corrects (1-100 characters)")
 
 
-class Undoing(BaseModel):
+class Undoing(Body):
     author: str = Field(description="who takes the correction back (1-100 characters)")
 
 

@@ -17,6 +17,7 @@ import gc
 import json
 import logging
 import os
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +44,9 @@ def example(*lines: str) -> str:
 
 
 class _Group(click.Group):
-    """The top-level group: turns our expected failures into click's `Error: ...` exit."""
+    """The top-level group: turns our expected failures into click's `Error: ...` exit, and a
+    command line click cannot parse too (its own form is a usage, a hint, a blank line and the
+    error, exit 2): every failure of pmem is one line `Error: ...` and exit 1."""
 
     def invoke(self, ctx: click.Context) -> Any:
         try:
@@ -51,6 +54,9 @@ class _Group(click.Group):
         except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError,
                 BackendSetupError) as exc:
             raise click.ClickException(one_line(exc)) from exc
+        except click.UsageError as exc:  # (a subcommand's options and arguments)
+            hint = f" (see `{exc.ctx.command_path} --help`)" if exc.ctx else ""
+            raise click.ClickException(exc.format_message() + hint) from exc
 
 
 def one_line(error: Exception) -> str:
@@ -171,7 +177,8 @@ def info(settings: Settings, as_json: bool) -> None:
 
 
 def progress_bar(label: str):
-    """The bar long operations show on stderr (stdout stays for their results)."""
+    """The bar long operations show on stderr (stdout stays for their results), when it is a
+    terminal."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -181,8 +188,12 @@ def progress_bar(label: str):
         TimeElapsedColumn,
     )
 
+    console = Console(stderr=True)
+    # (not drawn where stderr is no terminal: a log or a pipe would get its last line, or an
+    # empty one before an error)
     return Progress(TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+                    TimeElapsedColumn(), console=console, transient=True,
+                    disable=not console.is_terminal)
 
 
 # --- pmem import: bring percepts in -----------------------------------------------------------
@@ -329,8 +340,22 @@ def schema() -> None:
 # --- pmem serve / pmem demo -------------------------------------------------------------------
 
 
-def serve_app(store, settings: Settings, host: str, port: int) -> None:
-    """The web app and the HTTP API on host:port until Ctrl-C."""
+def listening(host: str, port: int) -> socket.socket:
+    """A socket bound to host:port for the web app, or the one-line error saying why not (a
+    port in use, a host that is not this machine's): taken before anything is loaded."""
+    try:
+        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
+        sock = socket.socket(family, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+    except OSError as error:
+        raise click.ClickException(
+            f"cannot listen on {host}:{port}: {error.strerror or error}") from None
+    return sock
+
+
+def serve_app(store, settings: Settings, host: str, sock: socket.socket) -> None:
+    """The web app and the HTTP API on the socket (bound to `host`) until Ctrl-C."""
     import uvicorn
 
     from percept_memory.webui.app import create_app
@@ -340,28 +365,33 @@ def serve_app(store, settings: Settings, host: str, port: int) -> None:
     # What is loaded now lives as long as the server: out of the collector's way, so that
     # each full collection (a request body parses into ~100,000 objects) skips it (-10 % CPU).
     gc.freeze()
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    uvicorn.Server(uvicorn.Config(app, log_level="warning")).run(sockets=[sock])
+
+
+PORT = click.IntRange(1, 65535)
 
 
 @main.command(epilog=example("pmem serve --port 8080"))
 @click.option("--host", default="127.0.0.1", show_default=True)
-@click.option("--port", default=8000, show_default=True, type=int)
+@click.option("--port", default=8000, show_default=True, type=PORT)
 @click.pass_obj
 def serve(settings: Settings, host: str, port: int) -> None:
     """Run the web app and the HTTP API (OpenAPI at /docs)."""
     from percept_memory.memory.store import MemoryStore
 
+    sock = listening(host, port)
     with MemoryStore.open(settings) as store:
         click.echo(f"percept-memory at http://{host}:{port}/docs", err=True)
-        serve_app(store, settings, host, port)
+        serve_app(store, settings, host, sock)
 
 
 @main.command(epilog=example("pmem demo", "PMEM_DB=scratch pmem demo --no-serve --workers 0"))
-@click.option("--days", default=7, show_default=True, help="days of the generated kitchen week")
+@click.option("--days", default=7, show_default=True, type=click.IntRange(0),
+              help="days of the generated kitchen week (0: none)")
 @click.option("--serve/--no-serve", "serving", default=True, show_default=True,
               help="serve the web app once the data is in")
 @click.option("--host", default="127.0.0.1", show_default=True)
-@click.option("--port", default=8000, show_default=True, type=int)
+@click.option("--port", default=8000, show_default=True, type=PORT)
 @click.option("--workers", default=1, show_default=True, type=click.IntRange(0),
               help="enrichment worker processes looking the clusters up (0: none)")
 @click.option("--backend", default="simulated", show_default=True,
@@ -376,12 +406,13 @@ def demo(settings: Settings, days: int, serving: bool, host: str, port: int, wor
     from percept_memory.ingest.workers import worker_processes
     from percept_memory.memory.store import MemoryStore
 
+    sock = listening(host, port) if serving else None
     with MemoryStore.open(settings) as store, worker_processes(workers, backend) as running:
         for source, scenes in demo_sources(days):
             echo_summary(source, ingest_with_progress(store, source, labelled(source, scenes)))
-        if serving:
+        if sock is not None:
             click.echo(f"percept-memory demo at http://{host}:{port}/docs  (Ctrl-C stops)")
-            serve_app(store, settings, host, port)
+            serve_app(store, settings, host, sock)
         elif running:
             counts = wait_for_lookups(store, running)
             click.echo(f"lookups: {counts['done']} done, {counts['failed']} failed")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -96,7 +97,7 @@ def test_import_commands_summarise_and_never_duplicate(mongo_uri, db_name, tmp_p
     assert not_a_dump.exit_code == 1 and "holds no cas.bson" in not_a_dump.stderr
     assert "Traceback" not in not_a_dump.output
     both = pmem("import", "robosherlock", str(tmp_path), "--uri", mongo_uri, **env)
-    assert both.exit_code == 2 and "FOLDER, or --uri and --db" in both.output
+    assert "FOLDER, or --uri and --db" in error_line(both)
 
     write_scene_log([synthetic.scene(np.random.default_rng(1), 5_000 + i, 2) for i in range(3)],
                     tmp_path / "log")
@@ -174,6 +175,30 @@ def error_line(result) -> str:
     assert len(lines) == 1 and lines[0].startswith("Error: "), result.stderr
     assert "Traceback" not in result.output
     return lines[0]
+
+
+@pytest.mark.parametrize("args, words", [
+    (["jobs", "--state", "bogus"], "'bogus' is not one of"),
+    (["export", "coco"], "Missing option '--out'. (see `"),  # (`pmem export --help`)
+    (["query", "catalogue", "--limit", "0"], "0 is not in the range"),
+    (["correct", "split", "5f0000000000000000000001"], "Missing"),
+    (["nosuch"], "No such command 'nosuch'"),
+    (["serve", "--port", "99999"], "99999 is not in the range 1<=x<=65535"),
+    (["demo", "--days", "-1", "--no-serve"], "-1 is not in the range x>=0"),
+])
+def test_a_command_line_click_cannot_parse_is_one_error_line_and_exit_1(args, words):
+    assert words in error_line(pmem(*args))
+
+
+def test_a_bad_database_name_and_a_port_in_use_are_one_error_line(mongo_uri):
+    assert "PMEM_DB 'a/b' is not a MongoDB database name" in error_line(
+        pmem("info", MONGODB_URI=mongo_uri, PMEM_DB="a/b"))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = str(taken.getsockname()[1])
+        line = error_line(pmem("serve", "--port", port, MONGODB_URI=mongo_uri))
+    assert line == f"Error: cannot listen on 127.0.0.1:{port}: Address already in use"
 
 
 @pytest.mark.parametrize("options, words", [

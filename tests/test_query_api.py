@@ -221,6 +221,6 @@ def test_pmem_query_takes_the_subject_as_argument_and_where_and_when_as_options(
                      env=env)
     assert json.loads(now.stdout)["t2"] == "now" and str(2**63 - 1) not in now.stdout
     missing = run(main, ["query", "changes", "--region", "shelf"], env=env)
-    assert missing.exit_code == 2 and "--t1" in missing.output
+    assert missing.exit_code == 1 and "--t1" in missing.output
     nothing = run(main, ["query", "where-is", "zzyzx"], env=env)
     assert nothing.exit_code == 0 and nothing.stdout == "" and "nothing matches" in nothing.output

@@ -5,13 +5,21 @@ from __future__ import annotations
 import gc
 import os
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import platformdirs
-from pydantic import AliasChoices, Field
+from pydantic import AfterValidator, AliasChoices, Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .types.json_forms import IMAGE_LIMITS
+
+
+def _database_name(name: str) -> str:
+    """A name MongoDB takes for a database (its rules: 1-63 bytes, none of /\\. "$ or NUL)."""
+    if not 0 < len(name.encode()) < 64 or set(name) & set('/\\. "$\0'):
+        raise ValueError(f"PMEM_DB {name!r} is not a MongoDB database name: 1 to 63 bytes, none of "
+                         f"/ \\ . \" $ or a space")
+    return name
 
 
 def default_data_dir() -> Path:
@@ -29,7 +37,8 @@ class Settings(BaseSettings):
         validation_alias=AliasChoices("MONGODB_URI"),
         description="MONGODB_URI: MongoDB connection string; unset = the embedded local mongod",
     )
-    db: str = Field(default="percept_memory", description="PMEM_DB: database name")
+    db: Annotated[str, AfterValidator(_database_name)] = Field(
+        default="percept_memory", description="PMEM_DB: database name")
     mongo_timeout_ms: int = Field(
         default=5000, ge=1,
         description="PMEM_MONGO_TIMEOUT_MS: how long to wait for an unreachable MongoDB before "

@@ -27,6 +27,7 @@ from percept_memory.memory.types import (
     Undo,
 )
 from percept_memory.memory.types.curation import verdict
+from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
 
@@ -97,6 +98,8 @@ def test_a_rejection_takes_the_cluster_out_of_the_belief_until_undone(memory):
     assert memory.clusters.find_one({"_id": cluster.id}).get("object_id") is None
     assert not memory.db[EVENTS].find_one({"scene_id": cluster.scene_id,
                                            "cluster_id": cluster.id})
+    with pytest.raises(NotFound, match="no object of the cluster .*: a person rejected it"):
+        QueryEngine(memory).where_is(str(cluster.id))  # (not "no object or cluster")
     curation.undo(memory, cluster.id, made.id, author="ana")
     settle(memory)
     assert memory.clusters.find_one({"_id": cluster.id}).get("object_id") is not None

@@ -10,8 +10,8 @@ class StoreError(RuntimeError):
 
 
 class NotFound(StoreError, KeyError):
-    def __init__(self, kind: str, key: object):
-        super().__init__(f"no {kind} {key}")
+    def __init__(self, kind: str, key: object, why: str = ""):
+        super().__init__(f"no {kind} {key}" + (f": {why}" if why else ""))
         self.kind, self.key = kind, key
 
     def __str__(self) -> str:

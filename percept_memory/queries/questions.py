@@ -14,10 +14,11 @@ from __future__ import annotations
 from bson import ObjectId
 from bson.min_key import MinKey
 
-from percept_memory.converters import unescape_key
+from percept_memory.converters import name_of, unescape_key
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, OBJECTS
 from percept_memory.memory.search_keys import words
+from percept_memory.memory.types import Rejection
 
 from .compile import time_window
 from .model import About, AtTime, Between, History, Place
@@ -79,12 +80,24 @@ def name_words(o: dict) -> dict[str, float]:
     return have
 
 
+REJECTION = name_of(Rejection)
+REJECTED = "a person rejected it (a detection of nothing: `pmem corrections` lists it)"
+
+
 def _by_id(given: ObjectId) -> Plan[dict]:
+    """The object of this id, or of the cluster of this id (a cluster of no object says
+    why)."""
     found = yield Find(OBJECTS, {"_id": given}, OBJECT_FIELDS)
-    if not found:
-        cluster = yield Find(CLUSTERS, {"_id": given}, {"object_id": 1})
-        if cluster and cluster[0].get("object_id") is not None:
-            found = yield Find(OBJECTS, {"_id": cluster[0]["object_id"]}, OBJECT_FIELDS)
+    if found:
+        return found[0]
+    cluster = yield Find(CLUSTERS, {"_id": given}, {"object_id": 1, "annotations._type": 1})
+    if not cluster:
+        raise NotFound("object or cluster", given)
+    if cluster[0].get("object_id") is None:
+        said = {a.get("_type") for a in cluster[0].get("annotations", [])}
+        raise NotFound("object of the cluster", given, REJECTED if REJECTION in said else
+                       "its scene is not consolidated yet (`pmem pipeline` says how far)")
+    found = yield Find(OBJECTS, {"_id": cluster[0]["object_id"]}, OBJECT_FIELDS)
     if not found:
         raise NotFound("object or cluster", given)
     return found[0]

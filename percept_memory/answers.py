@@ -15,8 +15,7 @@ from bson import ObjectId
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
-from percept_memory.queries.questions import NOW
-from percept_memory.queries.results import Moment
+from percept_memory.queries.results import NOW, Moment
 
 COLUMNS = {  # what a table of each kind of row shows, in order
     "ClusterHit": ("id", "time", "robot", "region", "position", "labels", "score", "distance"),

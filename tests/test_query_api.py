@@ -203,6 +203,16 @@ def test_a_time_printed_to_the_nanosecond_is_read_back_to_the_nanosecond(
     assert nanoseconds(seen, "t") == seen_ns  # the pages' reading of a time
 
 
+def test_a_question_about_now_says_null_for_its_time_not_int64s_top(client):
+    now = client.get(path("what-is-at"), params={"region": "shelf"}).json()
+    assert now["t"] is None and now["objects"]
+    changes = client.get(path("changes"), params={"region": "shelf", "t1": "2024-03-06"}).json()
+    assert changes["t2"] is None and changes["t1"] == 1709683200 * 10**9
+    nobody = client.get(path("playback"), params={"robot": "nobody"})
+    assert nobody.status_code == 404 and "at or before now" in nobody.text
+    assert str(2**63 - 1) not in nobody.text + str(now) + str(changes)
+
+
 def test_pmem_query_takes_the_subject_as_argument_and_where_and_when_as_options(
         mongo_uri, db_name, kitchen):
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}

@@ -12,9 +12,8 @@ from percept_memory.memory.schema import EVENTS, SCENES
 
 from .model import Playback
 from .ops import Find, Plan
-from .results import Frame
+from .results import NOW, Frame
 
-NOW = 2**63 - 1
 FAILED = {"log.level": "error"}  # what schema.py's robot_failed_time index holds
 FRAME_FIELDS = {"robot": 1, "map": 1, "timestamp": 1, "summary.clusters": 1, "log.level": 1,
                 "log.source": 1}
@@ -45,15 +44,16 @@ def _named(q: Playback) -> str:
 
 def _step(step: str, t: int) -> tuple[dict, tuple, str]:
     """The condition a step puts on the robot's scenes, their order, and what it looks for."""
+    when = "now" if t == NOW else f"{t} ns"
     if step == "at":
-        return {"timestamp": {"$lte": t}}, BACKWARD, f"at or before {t}"
+        return {"timestamp": {"$lte": t}}, BACKWARD, f"at or before {when}"
     if step in ("first", "last"):
         return {}, FORWARD if step == "first" else BACKWARD, "at all"
     if step == "previous":
-        return {"timestamp": {"$lt": t}}, BACKWARD, f"before {t}"
+        return {"timestamp": {"$lt": t}}, BACKWARD, f"before {when}"
     if step == "next":
-        return {"timestamp": {"$gt": t}}, FORWARD, f"after {t}"
-    return {"timestamp": {"$gt": t}, **FAILED}, FORWARD, f"after {t} where an annotator failed"
+        return {"timestamp": {"$gt": t}}, FORWARD, f"after {when}"
+    return {"timestamp": {"$gt": t}, **FAILED}, FORWARD, f"after {when} where an annotator failed"
 
 
 def _scene(condition: dict, order, fields: dict) -> Plan[dict | None]:

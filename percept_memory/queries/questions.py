@@ -23,12 +23,21 @@ from percept_memory.memory.types import Rejection
 from .compile import time_window
 from .model import About, AtTime, Between, History, Place
 from .ops import Aggregate, Find, Plan, QueryError
-from .results import Belief, Changes, Contents, Moved, ObjectAt, Sighting, Stay, position_sigma
+from .results import (
+    NOW,
+    Belief,
+    Changes,
+    Contents,
+    Moved,
+    ObjectAt,
+    Sighting,
+    Stay,
+    position_sigma,
+)
 from .results import History as HistoryAnswer
 from .space import Coordinates, inside
 from .text import all_terms, expand, word_score
 
-NOW = 2**63 - 1
 EVENT_PLACE = Coordinates.array("position")
 STATE_OF = {"appear": "present", "stay": "present", "move": "present", "newview": "present",
             "hidden": "hidden", "disappear": "disappeared"}

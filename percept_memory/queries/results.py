@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Self
 
-from pydantic import BaseModel
+from pydantic import BaseModel, PlainSerializer
 
 from percept_memory.memory.types import Id
 
@@ -17,6 +17,16 @@ class Moment:
 
 
 Nanoseconds = Annotated[int, Moment]
+NOW = 2**63 - 1  # a question about now asks about the newest belief: at or before any time
+
+
+def _null_for_now(ns: int) -> int | None:
+    return None if ns == NOW else ns
+
+
+AskedTime = Annotated[int, Moment, PlainSerializer(_null_for_now, return_type=int | None,
+                                                   when_used="json")]
+"""The moment a question was asked about: null in JSON when it was now (not int64's top)."""
 Position = tuple[float, float, float]
 State = Literal["present", "hidden", "disappeared"]
 
@@ -132,7 +142,7 @@ class ObjectAt(BaseModel):
 
 
 class Contents(BaseModel):
-    t: Nanoseconds
+    t: AskedTime
     objects: list[ObjectAt]
 
 
@@ -145,7 +155,7 @@ class Moved(BaseModel):
 
 class Changes(BaseModel):
     t1: Nanoseconds
-    t2: Nanoseconds
+    t2: AskedTime
     appeared: list[ObjectAt]  # at the place at t2, not at t1
     disappeared: list[Moved]  # at the place at t1, not at t2 (`after`: where it went)
     moved: list[Moved]  # at the place at both times, moved in between

@@ -506,7 +506,9 @@ def jobs(settings: Settings, state: str | None, limit: int, retry_failed: bool,
 
     with MemoryStore.open(settings) as store:
         if retry_failed:
-            click.echo(f"{requeue_failed(store)} failed job(s) queued again", err=True)
+            if not (queued := requeue_failed(store)):
+                raise click.ClickException("no failed job to queue again")
+            click.echo(f"{queued} failed job(s) queued again", err=True)
         report = job_report(store, state, limit)
     if as_json:
         click.echo(json.dumps(report, indent=2))
@@ -535,6 +537,8 @@ def reconsolidate(settings: Settings) -> None:
 
     with MemoryStore.open(settings) as store:
         maps = request_rebuild(store)
+        if not maps:
+            raise click.ClickException(f"no scene to reconsolidate in database {settings.db}")
         drain_with_progress(store, memory_pipeline(store, settings))
         objects = store.db["objects"].count_documents({})
         events = store.db["events"].count_documents({})
@@ -556,7 +560,9 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
 
     with MemoryStore.open(settings) as store:
         if retry:
-            click.echo(f"{retry_held(store)} held scene(s) queued again", err=True)
+            if not (queued := retry_held(store)):
+                raise click.ClickException("no held scene to retry")
+            click.echo(f"{queued} held scene(s) queued again", err=True)
         report = pipeline_status(store)
     if as_json:
         click.echo(json.dumps(report, indent=2))

@@ -190,6 +190,15 @@ def test_a_command_line_click_cannot_parse_is_one_error_line_and_exit_1(args, wo
     assert words in error_line(pmem(*args))
 
 
+def test_a_command_that_finds_nothing_to_do_says_so_and_exits_1(mongo_uri):
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": "pmem_test_nothing_to_do"}
+    try:
+        assert "no scene to reconsolidate" in error_line(pmem("reconsolidate", **env))
+        assert "no held scene to retry" in error_line(pmem("pipeline", "--retry", **env))
+    finally:
+        MongoClient(mongo_uri).drop_database(env["PMEM_DB"])
+
+
 def test_a_bad_database_name_and_a_port_in_use_are_one_error_line(mongo_uri):
     assert "PMEM_DB 'a/b' is not a MongoDB database name" in error_line(
         pmem("info", MONGODB_URI=mongo_uri, PMEM_DB="a/b"))

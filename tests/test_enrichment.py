@@ -591,5 +591,7 @@ def test_failed_jobs_show_their_error_in_the_cli_and_the_api(fresh, mongo_uri, d
     assert shown.exit_code == 0 and "HTTP 400" in shown.stdout and "failed: 1" in shown.stdout
     again = CliRunner().invoke(main, ["jobs", "--retry-failed", "--json"], env=env)
     assert again.exit_code == 0 and json.loads(again.stdout)["counts"]["queued"] == 1
+    none_left = CliRunner().invoke(main, ["jobs", "--retry-failed"], env=env)
+    assert none_left.exit_code == 1 and "no failed job to queue again" in none_left.stderr
     missing = CliRunner().invoke(main, ["worker", "--backend", "http"], env=env)
     assert missing.exit_code == 1 and "PMEM_LOOKUP_URL" in missing.output

@@ -32,6 +32,7 @@ COLUMNS = {  # what a table of each kind of row shows, in order
     "Occurrence": ("name", "region", "hour", "count", "object_id"),
     "Timing": ("annotator", "runs", "mean_ms", "max_ms", "total_ms", "warnings", "errors"),
 }
+MOMENT_KEYS = {"time", "first_seen", "last_seen"}  # in answers that are plain documents
 NESTED = ("state", "region", "position")  # what a row's nested object shows (Moved's places)
 WIDEST = 40  # characters of a cell, beyond which it is cut
 
@@ -55,8 +56,14 @@ def plain(value: Any) -> Any:
         return data
     if isinstance(value, list | tuple):
         return [plain(item) for item in value]
-    if isinstance(value, dict):
-        return {str(key): plain(item) for key, item in value.items()}
+    if isinstance(value, dict):  # (answers made as documents: moments by their names)
+        data = {}
+        for key, item in value.items():
+            if key in MOMENT_KEYS and isinstance(item, int) and not isinstance(item, bool):
+                data[key], data[f"{key}_ns"] = iso(item), item
+            else:
+                data[str(key)] = plain(item)
+        return data
     if isinstance(value, ObjectId):
         return str(value)
     return value

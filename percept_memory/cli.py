@@ -794,6 +794,7 @@ def _query_command(name: str, model) -> click.Command:
 def catalogue_entries(settings: Settings, map_name: str | None, limit: int,
                       as_json: bool) -> None:
     """Which objects this home has: the long-term catalogue's entries, the most seen first."""
+    from percept_memory import answers
     from percept_memory.memory.store import MemoryStore
     from percept_memory.queries import catalogue
 
@@ -801,8 +802,7 @@ def catalogue_entries(settings: Settings, map_name: str | None, limit: int,
         found = catalogue.entries(store, map_name, limit)
     if not found:
         raise click.ClickException("the catalogue is empty (no scene consolidated yet?)")
-    click.echo(json.dumps(found, indent=1) if as_json else
-               "\n".join(map(catalogue.as_text, found)))
+    click.echo(answers.as_json(found) if as_json else "\n".join(map(catalogue.as_text, found)))
 
 
 @query.command("seen-before", epilog=example("pmem query seen-before CLUSTER_ID"))
@@ -997,13 +997,14 @@ def undo(cluster, correction, author: str) -> None:
 @click.pass_obj
 def corrections(settings: Settings, author: str | None, limit: int, as_json: bool) -> None:
     """The corrections people made, newest first: kind, who, when, what, on which cluster."""
+    from percept_memory import answers
     from percept_memory.memory import curation
     from percept_memory.memory.store import MemoryStore
 
     with MemoryStore.open(settings) as store:
         rows = curation.audit(store, limit, author)
     if as_json:
-        click.echo(json.dumps(rows, indent=2, default=str))
+        click.echo(answers.as_json(rows))
         return
     if not rows:
         raise click.ClickException("no corrections" + (f" by {author}" if author else ""))

@@ -169,6 +169,7 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     from click.testing import CliRunner
     from fastapi.testclient import TestClient
 
+    from percept_memory import answers
     from percept_memory.cli import main
     from percept_memory.memory.settings import Settings
     from percept_memory.webui.app import create_app
@@ -209,7 +210,9 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
     shown = CliRunner().invoke(main, ["query", "catalogue", "--limit", "3", "--json"], env=env)
     assert shown.exit_code == 0, shown.output
-    assert json.loads(shown.stdout) == listed.json()["entries"]
+    entries = json.loads(shown.stdout)
+    assert entries == answers.plain(listed.json()["entries"])  # (moments as ISO 8601 + ns)
+    assert entries[0]["now"]["last_seen"].endswith("Z") and entries[0]["now"]["last_seen_ns"]
     text = CliRunner().invoke(main, ["query", "seen-before", view], env=env)
     assert text.exit_code == 0 and text.stdout.startswith("inclusion 1.00")
     for args in (["query", "seen-before", "nothex"], ["query", "seen-before", "0" * 24],

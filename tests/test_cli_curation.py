@@ -43,6 +43,7 @@ def test_a_relabel_and_its_undo_from_the_command_line(env, store):
     listed = pmem(env, "corrections", "--json")
     rows = json.loads(listed.output)
     assert [r["kind"] for r in rows[:2]] == ["undo", "relabel"]
+    assert rows[0]["time"].endswith("Z") and isinstance(rows[0]["time_ns"], int)  # README
     assert rows[1]["undone_by"]["author"] == "bo"
     assert "(undone by bo)" in pmem(env, "corrections", "--author", "ana").output
 

@@ -90,7 +90,7 @@ def main(ctx: click.Context) -> None:
 # --- pmem db: the embedded mongod --------------------------------------------------------------
 
 
-@main.group()
+@main.group(epilog=example("pmem db status"))
 def db() -> None:
     """Manage the embedded local mongod, used when MONGODB_URI is unset."""
 
@@ -248,7 +248,7 @@ def labelled(source: str, scenes):
     return ((f"{source} scene at {scene.timestamp}", scene) for scene in scenes)
 
 
-@main.group(name="import")
+@main.group(name="import", epilog=example("pmem import scene-log recordings/"))
 def import_() -> None:
     """Bring percepts into the memory (scenes already stored are not duplicated)."""
 
@@ -721,7 +721,7 @@ class _Queries(click.Group):
         return super().get_command(ctx, cmd_name)  # those of the long-term catalogue
 
 
-@main.group(cls=_Queries)
+@main.group(cls=_Queries, epilog=example('pmem query where-is "the ketchup"'))
 def query() -> None:
     """Ask the memory: clusters (text, space, time, annotation fields), where-is, where-was,
     last-seen, what-is-at, changes, stats. The subject (X) is the argument; places and times
@@ -912,7 +912,7 @@ def _author_option(command):
                         help="who makes the correction")(command)
 
 
-@main.group()
+@main.group(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
 def correct() -> None:
     """Correct what the annotators said of a cluster: relabel it, reject it, merge two objects,
     split one, undo a correction. Each is stored beside the annotations, with who and when (README:

@@ -141,16 +141,18 @@ def test_serving_beyond_loopback_without_a_token_makes_one_up(store, capsys):
 
 
 def test_pmem_serve_on_all_interfaces_needs_a_token_for_writes(mongo_uri, db_name, monkeypatch):
-    """The CLI's wiring, with uvicorn.run replaced by a few requests: nothing listens here."""
+    """The CLI's wiring, with the server's run replaced by a few requests and its socket by
+    none: nothing listens here."""
     answers = []
 
-    def run(app, **options):
-        client = TestClient(app, base_url=SERVER)
+    def run(server, sockets):
+        client = TestClient(server.config.app, base_url=SERVER)
         answers.append(client.post("/api/scenes", content=scene_body(6),
                                    headers={"content-type": "application/json"}).status_code)
         answers.append(client.get("/api/jobs").status_code)
 
-    monkeypatch.setattr(uvicorn, "run", run)
+    monkeypatch.setattr(uvicorn.Server, "run", run)
+    monkeypatch.setattr(cli, "listening", lambda host, port: None)
     result = CliRunner().invoke(cli.main, ["serve", "--host", "0.0.0.0"],
                                 env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
     assert result.exit_code == 0, result.output

@@ -505,10 +505,10 @@ def jobs(settings: Settings, state: str | None, limit: int, retry_failed: bool,
     from percept_memory.memory.store import MemoryStore
 
     with MemoryStore.open(settings) as store:
-        if retry_failed:
-            if not (queued := requeue_failed(store)):
-                raise click.ClickException("no failed job to queue again")
-            click.echo(f"{queued} failed job(s) queued again", err=True)
+        if retry_failed:  # (then the report, what the command is for)
+            queued = requeue_failed(store)
+            click.echo(f"{queued} failed job(s) queued again" if queued else
+                       "no failed job to queue again", err=True)
         report = job_report(store, state, limit)
     if as_json:
         click.echo(json.dumps(report, indent=2))
@@ -559,10 +559,10 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     from percept_memory.memory.store import MemoryStore
 
     with MemoryStore.open(settings) as store:
-        if retry:
-            if not (queued := retry_held(store)):
-                raise click.ClickException("no held scene to retry")
-            click.echo(f"{queued} held scene(s) queued again", err=True)
+        if retry:  # (then the report, what the command is for)
+            queued = retry_held(store)
+            click.echo(f"{queued} held scene(s) queued again" if queued else
+                       "no held scene to retry", err=True)
         report = pipeline_status(store)
     if as_json:
         click.echo(json.dumps(report, indent=2))

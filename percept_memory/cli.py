@@ -343,9 +343,8 @@ def schema() -> None:
 def listening(host: str, port: int) -> socket.socket:
     """A socket bound to host:port for the web app, or the one-line error saying why not (a
     port in use, a host that is not this machine's): taken before anything is loaded."""
-    try:
-        family = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0][0]
-        sock = socket.socket(family, socket.SOCK_STREAM)
+    try:  # (the family as uvicorn picks it: "localhost" is 127.0.0.1, not ::1)
+        sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((host, port))
     except OSError as error:

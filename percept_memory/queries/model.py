@@ -398,8 +398,6 @@ class ClusterQuery(ClusterFilter):
             raise ValueError("sort=relevance needs text")
         if self.near is not None and self.cursor is not None:
             raise ValueError("the k nearest come in one page: no cursor")
-        if self.near is None and "k" in self.model_fields_set:  # (it would do nothing)
-            raise ValueError("k is how many nearest clusters to a point: it goes with near")
         if self.limit == 0 and not (self.count and self.near is None):
             raise ValueError("limit=0 asks for no page: with count=true it asks for the count "
                              "alone (not of the k nearest)")

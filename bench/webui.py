@@ -94,11 +94,15 @@ SEARCHES = {
 
 
 def search_facets(page: str) -> dict:
-    """The hits on a search page, and how many of the regions it offers have a count."""
-    regions = re.search(r'<select name="region".*?</select>', page, re.S).group(0)
-    return {"hits": page.count('class="hit"'),
-            "regions_counted": len(re.findall(r"\([\d,]+\+?\)</option>", regions)),
-            "regions": regions.count("<option")}
+    """The hits on a search page, and how many of the regions and robots it offers have a
+    count."""
+    found = {"hits": page.count('class="hit"')}
+    for name in ("region", "robot"):
+        select = re.search(rf'<select name="{name}".*?</select>', page, re.S).group(0)
+        offered = re.findall(r"<option value=\"[^\"]+\"", select)  # (not "any robot")
+        found[f"{name}s_counted"] = len(re.findall(r"\([\d,]+\+?\)</option>", select))
+        found[f"{name}s"] = len(offered)
+    return found
 
 
 def search_pages(args: argparse.Namespace, big: Scene) -> dict:

@@ -9,6 +9,7 @@ from contextlib import contextmanager
 from urllib.parse import parse_qsl, urlsplit
 
 import pytest
+from bson import ObjectId
 from fastapi.testclient import TestClient
 from playwright.sync_api import expect
 
@@ -32,6 +33,13 @@ def memory(store):
         scene.robot = "tiago"  # a second robot, with scenes of every region
     ingest_consolidated(store, scenes)
     return store
+
+
+@pytest.fixture(autouse=True)
+def time_to_count(monkeypatch):
+    """Counts are checked here, not the page's time budget (but where a test sets it): a
+    machine busy with other tests must not leave a count out."""
+    monkeypatch.setattr(facets, "BUDGET_MS", 10_000)
 
 
 def choices_of(store) -> dict[str, list[str]]:
@@ -107,6 +115,11 @@ def test_counts_left_when_the_time_budget_runs_out_show_no_number(memory, monkey
     assert all(n is None for values in counts.values() for n in values.values())
     client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
     assert '<option value="tiago">tiago</option>' in client.get("/scenes").text
+    searched = client.get("/search", params={"text": "cup"}).text
+    assert '<option value="tiago">tiago</option>' in searched
+    assert re.search(r"\d+ of the values offered show no count", searched)
+    monkeypatch.undo()  # with the time to count
+    assert "show no count" not in client.get("/search").text
 
 
 @pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"text": "cup", "robot": "tiago"},
@@ -128,20 +141,102 @@ def test_the_search_page_counts_each_region_and_robot_with_the_rest_of_the_query
     assert f'table ({facets.shown(table)})</option>' in text or table == 0
 
 
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"region": ["table"]},
+                                   {"labelled": ["Cup"]}, {"sphere": "1.9,4.6,0.8,1.5"}])
+@pytest.mark.parametrize("looked", [3, 1000])
+def test_the_most_frequent_labels_and_objects_are_offered_with_their_counts(memory, monkeypatch,
+                                                                         asked, looked):
+    """A look at few matches finds the values to offer, and they are counted all the same."""
+    monkeypatch.setattr(facets, "LOOKED", looked)
+    engine = QueryEngine(memory)
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters, ClusterQuery(**asked),
+                                         {"region": [], "robot": []})
+    for name in facets.FREQUENT:
+        assert 0 < len(counts[name]) <= facets.TOP + len(asked.get(name, [])), name
+        for value, count in counts[name].items():
+            expected = engine.clusters(**{**asked, name: [value], "limit": 0,
+                                          "count": True}).total
+            assert count == min(expected, facets.CAP + 1) and count > 0, (name, value)
+    if looked == 1000:  # all the matches looked at: the others offered are the most frequent
+        labels = [n for value, n in counts["labelled"].items() if value != "cup"]
+        assert labels == sorted(labels, reverse=True)
+    if asked.get("labelled"):
+        assert "cup" in counts["labelled"]  # a chosen value is offered, to be taken out
+
+
+def test_a_label_or_an_object_offered_narrows_the_search_by_keyboard_and_back(memory):
+    with in_chromium(memory) as (tab, url):
+        tab.goto(f"{url}/search?text=cup")
+        everything = int(tab.locator("p.summary").inner_text().split()[0])
+        label = tab.locator("#facet-labelled + ul a").first
+        name = label.inner_text()
+        label.focus()
+        with tab.expect_navigation():
+            tab.keyboard.press("Enter")
+        given = parse_qsl(urlsplit(tab.url).query)
+        assert ("text", "cup") in given and ("labelled", name) in given
+        narrowed = int(tab.locator("p.summary").inner_text().split()[0])
+        assert 0 < narrowed <= everything
+        assert narrowed == QueryEngine(memory).clusters(
+            text="cup", labelled=[name], limit=0, count=True).total
+        chosen = tab.locator("#facet-labelled + ul li.chosen a")
+        expect(chosen).to_have_text(name)
+        SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+        tab.screenshot(path=str(SCREENSHOTS / "search-facets.png"))  # the form, facets, hits
+        objects = tab.locator("#facet-object + ul a")
+        expect(objects.first).to_be_visible()
+        with tab.expect_navigation():
+            chosen.click()  # taken out again
+        assert dict(parse_qsl(urlsplit(tab.url).query)) == {"text": "cup", "view": "grid"}
+        with tab.expect_navigation():
+            tab.locator("#facet-object + ul a").first.click()
+        only = dict(parse_qsl(urlsplit(tab.url).query))["object"]
+        assert {h["object_id"] for h in memory.clusters.find(
+            {"_id": {"$in": [ObjectId(tab.locator("li.hit").nth(i).get_attribute(
+                "data-cluster")) for i in range(tab.locator("li.hit").count())]}})} == {
+            ObjectId(only)}
+
+
+SPHERE = "1.9,4.6,0.8,1.5"
+
+
+@pytest.mark.parametrize("few", [0, 3])  # the 3 robots counted one by one first, or grouped too
 @pytest.mark.parametrize("grouped", [1, 60, 5000])
-@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"sphere": "1.9,4.6,0.8,1.5"}])
+@pytest.mark.parametrize("asked", [{}, {"text": "cup"}, {"sphere": SPHERE},
+                                   {"sphere": SPHERE, "robot": ["tiago"]},
+                                   {"sphere": SPHERE, "region": ["table", "shelf"]},
+                                   {"where": ["shape:shape=box"], "robot": ["nobody"]}])
 def test_a_first_look_that_settles_some_counts_leaves_the_rest_to_be_counted(
-        memory, monkeypatch, grouped, asked):
+        memory, monkeypatch, grouped, asked, few):
+    """The first look groups by region and robot at once: a region's count keeps only the
+    groups of the robots asked for, and a robot's those of the regions asked for."""
     monkeypatch.setattr(facets, "CAP", 5)
     monkeypatch.setattr(facets, "GROUPED", grouped)
+    monkeypatch.setattr(facets, "FEW", few)
     engine = QueryEngine(memory)
-    regions = sorted(memory.clusters.distinct("search.region"))
+    choices = {"region": sorted(memory.clusters.distinct("search.region")),
+               "robot": ["nobody", *sorted(memory.clusters.distinct("search.robot"))]}
     counts = facets.cluster_facet_counts(engine.runner, memory.clusters, ClusterQuery(**asked),
-                                         {"region": regions})
-    for value in regions:
-        expected = engine.clusters(**{**asked, "region": [value], "limit": 0,
-                                      "count": True}).total
-        assert counts["region"][value] == min(expected, 6), (value, grouped)
+                                         choices)
+    for name, values in choices.items():
+        for value in values:
+            expected = engine.clusters(**{**asked, name: [value], "limit": 0,
+                                          "count": True}).total
+            assert counts[name][value] == min(expected, 6), (name, value, grouped)
+    assert any(n for values in counts.values() for n in values.values())
+
+
+@pytest.mark.parametrize("field", ["search.region", "search.robot"])
+@pytest.mark.parametrize("words", [["cup"], ["cup", "plate"]])
+def test_a_text_is_counted_by_region_and_robot_from_index_keys_alone(memory, field, words):
+    value = sorted(memory.clusters.distinct(field))[0]
+    explained = memory.db.command("explain", {"aggregate": "clusters", "pipeline": [
+        {"$match": {"search.terms": {"$in": words}, field: value}},
+        {"$limit": facets.CAP + 1}, {"$group": {"_id": 1, "n": {"$sum": 1}}}],
+        "cursor": {}}, verbosity="executionStats")
+    found = explained.get("executionStats") or explained["stages"][0]["$cursor"][
+        "executionStats"]
+    assert found["nReturned"] > 0 and found["totalDocsExamined"] == 0, found
 
 
 # --- the histogram of scenes over time (webui/histogram.py) ----------------------------------

@@ -68,6 +68,11 @@ INDEXES: dict[str, list[IndexModel]] = {
         _newest("search.region", name="region_newest"),
         _newest("search.robot", name="robot_newest"),
         _newest("search.terms", name="terms_newest"),
+        # a text's matches counted by region and by robot from the index's keys alone (the
+        # search page's facets, webui/facets.py): ~60 B a cluster at a million, since
+        # neighbouring keys share their word and region and WiredTiger stores them once
+        IndexModel([("search.terms", ASCENDING), ("search.region", ASCENDING),
+                    ("search.robot", ASCENDING)], name="terms_region_robot"),
         # a label exactly (any annotator's): counted from the index's keys alone (COUNT_SCAN)
         _newest("search.labels", name="labels_newest"),
         # a position's Morton key with its coordinates: a box is decided and the k nearest

@@ -11,6 +11,7 @@ a bar's link, or a drag across bars (static/brush.js).
 
 from __future__ import annotations
 
+import asyncio
 from urllib.parse import urlencode
 
 from bson import ObjectId
@@ -23,7 +24,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.model import canonical_type
 
 from .facets import facet_counts, shown
-from .histogram import Bar, Histogram, scene_histogram
+from .histogram import Bar, scene_histogram
 from .html import LIST_FIELDS, SCRIPT_CSP, PageError, nanoseconds, page
 
 SCENES_PER_PAGE = 20
@@ -44,22 +45,30 @@ def routes(store: MemoryStore) -> APIRouter:
         filters = {"robot": robot, "region": region, "annotator": annotator, "type": type,
                    "since": since, "until": until}
 
-        def load() -> tuple[list[dict], dict[str, list[str]], dict, Histogram | None]:
+        def choose() -> tuple[dict[str, list[str]], dict]:
             choices = {name: sorted(v for v in store.scenes.distinct(key) if v is not None)
                        for name, key in CHOICES.items()}
-            query = scene_filter(filters, choices["type"])
-            counts = facet_counts(store.scenes, query, choices, CHOICES)
-            histogram = scene_histogram(store.scenes, query)
-            if before:
-                stamp, scene_id = _cursor(before)
+            return choices, scene_filter(filters, choices["type"])
+
+        after = _cursor(before) if before else None  # (a bad cursor: a 422 before any work)
+
+        def listed(query: dict) -> list[dict]:
+            if after:
+                stamp, scene_id = after
                 query = {"$and": [query, {"$or": [
                     {"timestamp": {"$lt": stamp}},
                     {"timestamp": stamp, "_id": {"$lt": scene_id}}]}]}
             found = store.scenes.find(query, LIST_FIELDS).sort(
                 [("timestamp", DESCENDING), ("_id", DESCENDING)]).limit(SCENES_PER_PAGE + 1)
-            return list(found), choices, counts, histogram
+            return list(found)
 
-        scenes, choices, counts, histogram = await run_in_threadpool(load)
+        choices, query = await run_in_threadpool(choose)
+        # the counts, the histogram and the page at once: each its own commands, each within
+        # its own time budget, so the page waits for the slowest, not for their sum
+        scenes, counts, histogram = await asyncio.gather(
+            run_in_threadpool(listed, query),
+            run_in_threadpool(facet_counts, store.scenes, query, choices, CHOICES),
+            run_in_threadpool(scene_histogram, store.scenes, query))
         given = {name: value for name, value in filters.items() if value}
         older = None
         if len(scenes) > SCENES_PER_PAGE:

@@ -10,6 +10,7 @@ offered shows how many observations it would select with the rest of the query (
 
 from __future__ import annotations
 
+import asyncio
 import re
 from urllib.parse import urlencode
 
@@ -19,6 +20,7 @@ from fastapi.responses import HTMLResponse, RedirectResponse
 from pydantic import ValidationError
 
 from percept_memory.converters import registered_types
+from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.store import MemoryStore
 from percept_memory.memory.types import Annotation
 from percept_memory.queries.engine import QueryEngine
@@ -52,12 +54,18 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         context = {"view": view, "form": _form(asked), "time_inputs": _time_inputs(asked),
                    "problems": [], "hits": [],
                    "crops": set(), "links": _links(asked, view), "next": None,
-                   "counts": {}, "shown": shown,
+                   "counts": {}, "narrowing": [], "uncounted": 0, "shown": shown,
                    **await run_in_threadpool(_choices, store)}
         try:
             query = from_params(ClusterQuery, asked if any(k == "limit" for k, _ in asked)
                                 else [*asked, ("limit", str(PAGE_SIZE))])
-            found = await run_in_threadpool(engine.clusters, query)
+            # the page and the counts beside its filters at once (each its own commands):
+            # the page waits for the slower, not for their sum
+            found, counts = await asyncio.gather(
+                run_in_threadpool(engine.clusters, query),
+                run_in_threadpool(cluster_facet_counts, engine.runner, store.clusters, query,
+                                  {"region": context["regions"], "robot": context["robots"]})
+                if query.near is None else _nothing())  # (the k nearest are not counted)
         except ValidationError as error:
             context["problems"] = [f"{'.'.join(map(str, e['loc'])) or 'query'}: {e['msg']}"
                                    for e in error.errors(include_url=False)]
@@ -70,10 +78,9 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             return page(request, "search.html", context, 422)
         context.update(hits=found.items, total=found.total, export=_exported(asked),
                        crops=await run_in_threadpool(with_crops, store, found.items))
-        if query.near is None:  # (the k nearest are not counted by region or robot)
-            context["counts"] = await run_in_threadpool(
-                cluster_facet_counts, engine.runner, store.clusters, query,
-                {"region": context["regions"], "robot": context["robots"]})
+        context.update(counts=counts, narrowing=await run_in_threadpool(
+            _narrowing, store, asked, view, counts), uncounted=sum(
+            n is None for values in counts.values() for n in values.values()))
         if found.next:
             rest = [(k, v) for k, v in asked if k != "cursor"]
             context["next"] = "/search?" + urlencode([*rest, ("cursor", found.next),
@@ -81,6 +88,10 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         return page(request, "search.html", context)
 
     return router
+
+
+async def _nothing() -> dict:
+    return {}
 
 
 def _form(asked: list[tuple[str, str]]) -> dict[str, list[str]]:
@@ -106,6 +117,32 @@ def _links(asked: list[tuple[str, str]], view: str) -> dict[str, str]:
     links = {name: "/search?" + urlencode([*asked, ("view", name)]) for name in VIEWS}
     links["first"] = "/search?" + urlencode([*rest, ("view", view)])
     return links
+
+
+def _narrowing(store: MemoryStore, asked: list[tuple[str, str]], view: str,
+               counts: dict[str, dict]) -> list[dict]:
+    """The label and object facets: each value offered (facets.py: the chosen and the most
+    frequent) with its count and the link that adds it to the search, or takes it out when
+    it is chosen."""
+    rest = [(k, v) for k, v in asked if k != "cursor"]
+    names = {o["_id"]: o.get("name") for o in store.objects.find(
+        {"_id": {"$in": list(counts.get("object", {}))}}, {"name": 1})}
+    facets = []
+    for name, title in (("labelled", "Labels"), ("object", "Objects")):
+        chosen = {normal_label(v) if name == "labelled" else v for k, v in rest if k == name}
+        values = []
+        for value, count in counts.get(name, {}).items():
+            text, on = str(value), str(value) in chosen
+            link = ([(k, v) for k, v in rest if k != name or
+                     (normal_label(v) if name == "labelled" else v) != text]
+                    if on else [*rest, (name, text)])
+            shown = (f"{names.get(value) or 'unnamed'} ({text[-6:]})" if name == "object"
+                     else text)
+            values.append({"text": shown, "count": count, "chosen": on,
+                           "link": "/search?" + urlencode([*link, ("view", view)])})
+        if values:
+            facets.append({"name": name, "title": title, "offered": values})
+    return facets
 
 
 def _exported(asked: list[tuple[str, str]]) -> list[tuple[str, str]]:

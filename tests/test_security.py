@@ -109,6 +109,28 @@ def test_a_wrong_method_gets_405_with_allow(client):
     assert response.json()["error"]["status"] == 405
 
 
+@pytest.mark.parametrize("method, path, allowed", [
+    ("DELETE", "/api/scenes", "POST"), ("PUT", "/api/jobs", "GET"),
+    ("PATCH", "/api/scenes", "POST"), ("HEAD", "/api/scenes", "POST")])
+def test_a_method_no_route_takes_gets_405_whatever_its_body(client, method, path, allowed):
+    """Not 415 for a body without a type: the method is what is wrong."""
+    response = client.request(method, path)
+    assert response.status_code == 405 and response.headers["allow"] == allowed
+    if method != "HEAD":
+        assert response.json()["error"]["status"] == 405
+
+
+@pytest.mark.parametrize("path, same_length", [
+    ("/", False), ("/search?text=cup", False),  # (pages whose counts have a time budget)
+    ("/api/jobs", True), ("/static/ui/style.css", True)])
+def test_head_answers_what_get_would_without_the_body(client, path, same_length):
+    got, head = client.get(path), client.head(path)
+    assert head.status_code == got.status_code == 200
+    assert head.content == b"" and int(head.headers["content-length"]) > 0
+    for name in ("content-type", "content-security-policy", *(["content-length"] * same_length)):
+        assert head.headers.get(name) == got.headers.get(name), name
+
+
 @pytest.mark.parametrize("method, path, headers", [
     ("GET", "/api/jobs", {}),
     ("GET", "/", {}),

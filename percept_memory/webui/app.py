@@ -40,6 +40,7 @@ from .errors import (
 )
 from .export_api import export_router
 from .guard import JSON, NDJSON, Guard, authorise, media_type
+from .head import HeadAsGet
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
@@ -73,6 +74,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         redoc_url=None,
     )
     app.add_middleware(Guard, settings=settings)  # who may talk to the app: guard.py
+    app.add_middleware(HeadAsGet)  # (head.py)
     service = IngestService(store, pipeline=pipeline, settings=settings)
     max_bytes = int(settings.max_request_mb * 2**20)
     scene_schema = Scene.model_json_schema()

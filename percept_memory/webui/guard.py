@@ -7,9 +7,10 @@ so that it also answers requests no route takes:
 - a request under /api other than GET, HEAD or OPTIONS, whether it writes (POST /api/scenes)
   or asks a query in a JSON body, gets 403 when it comes from a page of another origin
   (`Origin`, PMEM_ALLOWED_ORIGINS excepted; `Origin: null` is a file:// or sandboxed page),
-  and 415 without `Content-Type: application/json` (or `application/x-ndjson`, scenes one a
-  line, for POST /api/scenes). Any page may send text/plain, form data or a body without type
-  to any server without asking first; these types need the server's consent (a CORS
+  and a POST 415 without `Content-Type: application/json` (or `application/x-ndjson`, scenes
+  one a line, for POST /api/scenes). Any page may POST text/plain, form data or a body
+  without type to any server without asking first; these types, like any other method (PUT,
+  DELETE, ...: no route takes them, so they get 405), need the server's consent (a CORS
   preflight), which this app never gives.
 - every response says `Referrer-Policy: no-referrer` and `X-Content-Type-Options: nosniff`.
 
@@ -84,7 +85,7 @@ class Guard:
                                        "that may")
         content_type = headers.get("content-type")
         types = BODY_TYPES.get(path, (JSON,))
-        if media_type(content_type) not in types:
+        if method == "POST" and media_type(content_type) not in types:
             return error_response(415, f"{method} {path} takes Content-Type: "
                                        f"{' or '.join(types)}, "
                                        f"not {content_type or 'a body without one'}")

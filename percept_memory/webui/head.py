@@ -1,0 +1,28 @@
+"""HEAD answered as GET without its body (RFC 9110, 9.3.2: the same headers, no content).
+FastAPI's routes take only the methods they declare, so a HEAD of a page or of a GET endpoint
+was a 405; a `curl -I` or a link checker must see what a GET would."""
+
+from __future__ import annotations
+
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+
+class HeadAsGet:
+    """The app, with a HEAD request run as its GET and the body left out."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["method"] != "HEAD":
+            await self.app(scope, receive, send)
+            return
+
+        async def headers_only(message: Message) -> None:
+            if message["type"] == "http.response.body":
+                if message.get("more_body", False):
+                    return
+                message = {"type": "http.response.body", "body": b"", "more_body": False}
+            await send(message)
+
+        await self.app({**scope, "method": "GET"}, receive, headers_only)

@@ -5,7 +5,8 @@ the query, can be shared, and `/search?text=cereal&region=table` asks what
 `/api/clusters?text=cereal&region=table` does. Results show as a grid of crops or as a list, a
 page at a time by the engine's cursor (the k nearest: one page). A query the model refuses
 comes back as the form with each problem named (422), never a 500. Each region and robot
-offered shows how many observations it would select with the rest of the query (facets.py).
+offered shows how many observations it would select with the rest of the query, and the labels
+and objects most frequent among the matches are offered as links with theirs (facets.py).
 """
 
 from __future__ import annotations

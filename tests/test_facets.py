@@ -40,6 +40,7 @@ def time_to_count(monkeypatch):
     """Counts are checked here, not the page's time budget (but where a test sets it): a
     machine busy with other tests must not leave a count out."""
     monkeypatch.setattr(facets, "BUDGET_MS", 10_000)
+    monkeypatch.setattr(facets, "SEARCH_BUDGET_MS", 10_000)
 
 
 def choices_of(store) -> dict[str, list[str]]:
@@ -111,6 +112,7 @@ def test_the_scene_log_shows_the_counts_beside_the_values(memory):
 
 def test_counts_left_when_the_time_budget_runs_out_show_no_number(memory, monkeypatch):
     monkeypatch.setattr(facets, "BUDGET_MS", 0)
+    monkeypatch.setattr(facets, "SEARCH_BUDGET_MS", 0)
     counts = facets.facet_counts(memory.scenes, {}, choices_of(memory), CHOICES)
     assert all(n is None for values in counts.values() for n in values.values())
     client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)

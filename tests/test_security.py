@@ -5,6 +5,7 @@ headers on every response."""
 from __future__ import annotations
 
 import json
+import time
 
 import pytest
 import uvicorn
@@ -118,6 +119,15 @@ def test_a_method_no_route_takes_gets_405_whatever_its_body(client, method, path
     assert response.status_code == 405 and response.headers["allow"] == allowed
     if method != "HEAD":
         assert response.json()["error"]["status"] == 405
+
+
+def test_head_of_a_stream_ends_with_its_headers(client):
+    """The live page's events never end of themselves: a HEAD must not wait for them."""
+    started = time.monotonic()
+    head = client.head("/live/events")
+    assert head.status_code == 200 and head.content == b""
+    assert head.headers["content-type"].startswith("text/event-stream")
+    assert time.monotonic() - started < 5
 
 
 @pytest.mark.parametrize("path, same_length", [

@@ -18,11 +18,17 @@ class HeadAsGet:
             await self.app(scope, receive, send)
             return
 
+        ended = False
+
         async def headers_only(message: Message) -> None:
-            if message["type"] == "http.response.body":
-                if message.get("more_body", False):
-                    return
-                message = {"type": "http.response.body", "body": b"", "more_body": False}
+            """The response ends with its headers: a stream (the live page's events, an
+            export) is not waited for, and ends when its client's disconnect is seen."""
+            nonlocal ended
+            if ended:
+                return
             await send(message)
+            if message["type"] == "http.response.start":
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+                ended = True
 
         await self.app({**scope, "method": "GET"}, receive, headers_only)

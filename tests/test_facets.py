@@ -264,6 +264,15 @@ def test_no_scenes_no_histogram(memory):
     assert histogram.scene_histogram(memory.scenes, {"robot": "nobody"}) is None
 
 
+def test_a_histogram_not_counted_in_time_is_left_out(memory, monkeypatch):
+    assert histogram.scene_histogram(memory.scenes, {}) is not None
+    monkeypatch.setattr(histogram, "BUDGET_MS", 0)
+    assert histogram.scene_histogram(memory.scenes, {}) is None
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    page = client.get("/scenes")
+    assert page.status_code == 200 and "figure class=\"histogram\"" not in page.text
+
+
 @contextmanager
 def tiagos_scene_log(memory):
     """Robot tiago's scene log in Chromium with its histogram's bars drawn (tab, bars); the

@@ -180,15 +180,15 @@ def counted(collection: Collection, asked: Mapping[str, Mapping[str, dict]],
 
 
 def counts_of(collection: Collection, queries: list[dict], deadline: float,
-              cap: int | None) -> list[int | None]:
-    """The count of each query (to cap + 1, if a cap is given), in one command: each query is
-    a pipeline of its own ($unionWith) on its own index, and none waits for a round trip;
-    all None when the deadline (time.monotonic) passes first."""
+              cap: int) -> list[int | None]:
+    """The count of each query to cap + 1, in one command: each query is a pipeline of its
+    own ($unionWith) on its own index, and none waits for a round trip; all None when the
+    deadline (time.monotonic) passes first."""
     left_ms = int((deadline - time.monotonic()) * 1000)
     if not queries or left_ms <= 0:
         return [None] * len(queries)
-    limit = [] if cap is None else [{"$limit": cap + 1}]
-    first, *rest = [[{"$match": query}, *limit, {"$group": {"_id": position, "n": {"$sum": 1}}}]
+    first, *rest = [[{"$match": query}, {"$limit": cap + 1},
+                     {"$group": {"_id": position, "n": {"$sum": 1}}}]
                     for position, query in enumerate(queries)]
     pipeline = first + [{"$unionWith": {"coll": collection.name, "pipeline": p}} for p in rest]
     try:

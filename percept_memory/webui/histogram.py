@@ -4,28 +4,29 @@ range to it (it works from the keyboard and without a script; static/brush.js ad
 across bars, setting the range to their stretch).
 
 Where the span starts and ends is read from the `newest` index (or a filter's own index paired
-with time, schema.py), and the bars are counted in one command (facets.py's way, without a
-cap: a bar's count is exact), within a time budget of its own; a histogram that would take
-longer is left out rather than slowing the page.
+with time, schema.py), and the bars are counted exactly, a `count` command each, a few at once
+(`bar_counts`), within a time budget of its own; a histogram that would take longer is left
+out rather than slowing the page.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 
 from pymongo import ASCENDING, DESCENDING
 from pymongo.collection import Collection
-
-from . import facets
+from pymongo.errors import ExecutionTimeout
 
 BARS = 24
 WIDTH, HEIGHT = 960, 64
 MIN_HEIGHT = 2  # px: a bar with any scene shows, however tall the tallest
 MICROSECOND = 1000  # ns: the finest a page's time field says
 BUDGET_MS = 80  # counted beside the facet counts (webui/scene_log.py), not after them
+COUNTERS = ThreadPoolExecutor(max_workers=3, thread_name_prefix="pmem-histogram")
 
 
 @dataclass
@@ -70,14 +71,32 @@ def scene_histogram(scenes: Collection, query: Mapping) -> Histogram | None:
     edges = [start + i * step for i in range(BARS + 1)]
     spans = [{**query, "timestamp": {"$gte": a, "$lt": b}}  # within the query's own range
              for a, b in zip(edges, edges[1:], strict=False)]
-    counts = facets.counts_of(scenes, spans, deadline, cap=None)
-    if None in counts:
+    counts = bar_counts(scenes, spans, deadline)
+    if counts is None:
         return None
     tallest, width = max(counts), WIDTH / BARS
     return Histogram([Bar(a, b, n, round(i * width, 1), round(width - 1, 1),
                           round(max(HEIGHT * n / tallest, MIN_HEIGHT if n else 0), 1))
                       for i, (a, b, n) in enumerate(zip(edges, edges[1:], counts,
                                                         strict=False))])
+
+
+def bar_counts(scenes: Collection, spans: list[dict], deadline: float) -> list[int] | None:
+    """Each span's count, by `count` commands, COUNTERS at a time (an index decides each
+    from its keys, COUNT_SCAN, and mongod counts two on two cores: over 200,000 scenes
+    unfiltered 42 ms, where one aggregation of all the bars took 80); None when the time
+    (time.monotonic) ran out first."""
+    def count(span: dict) -> int:
+        left_ms = int((deadline - time.monotonic()) * 1000)
+        if left_ms <= 0:
+            raise ExecutionTimeout("no time left to count", code=50)
+        return scenes.database.command("count", scenes.name, query=span,
+                                       maxTimeMS=left_ms)["n"]
+
+    try:
+        return list(COUNTERS.map(count, spans))
+    except ExecutionTimeout:
+        return None
 
 
 def _iso(nanoseconds: int) -> str:

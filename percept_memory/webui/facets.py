@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 
 from pymongo.collection import Collection
 from pymongo.errors import ExecutionTimeout
@@ -71,47 +71,51 @@ def cluster_facet_counts(runner: Runner, clusters: Collection, query: ClusterFil
     none in time over 1,000,000 clusters: bench/webui.py): the form's own choices first,
     then the labels and objects (a label's count with a text reads documents)."""
     deadline = time.monotonic() + SEARCH_BUDGET_MS / 1000
+    without = {name: unfiltered(runner, query, [name]) for name in [*choices, *FREQUENT]}
     few = {name: values for name, values in choices.items() if len(values) <= FEW}
-    counts = with_counts(runner, clusters, query, few, {name: {} for name in few}, deadline)
+    counts = with_counts(clusters, without, few, {name: {} for name in few}, deadline)
     many = {name: values for name, values in choices.items() if name not in few}
     known = {name: {} for name in many}
     if many and any(getattr(query, condition) for condition in GROUPED_FIRST):
-        unchosen, _ = runner.run(compiled(query.model_copy(update=dict.fromkeys(many, []))))
-        known = grouped(clusters, unchosen, query, many, deadline)
-    counts |= with_counts(runner, clusters, query, many, known, deadline)
+        known = grouped(clusters, unfiltered(runner, query, many), query, many, deadline)
+    counts |= with_counts(clusters, without, many, known, deadline)
     offered, known = {}, {}  # then, in what time is left, the labels and objects to offer
     for name in FREQUENT:
-        found = frequent(runner, clusters, query, name, deadline)
+        found = frequent(clusters, without[name], name, deadline)
         chosen = [normal_label(v) for v in query.labelled] if name == "labelled" else query.object
         offered[name] = list(dict.fromkeys([*chosen, *found]))
         known[name] = {value: n for value, n in found.items() if n is not None}
-    return {**counts, **with_counts(runner, clusters, query, offered, known, deadline)}
+    return {**counts, **with_counts(clusters, without, offered, known, deadline)}
 
 
-def with_counts(runner: Runner, clusters: Collection, query: ClusterFilter,
+def unfiltered(runner: Runner, query: ClusterFilter, names: Iterable[str]) -> dict:
+    """The MongoDB filter of the query without the filters `names` (compiled once a page for
+    each: a text's words are looked up in the vocabulary each time)."""
+    match, _ = runner.run(compiled(query.model_copy(update=dict.fromkeys(names, []))))
+    return match
+
+
+def with_counts(clusters: Collection, without: Mapping[str, dict],
                 offered: Mapping[str, list], known: Mapping[str, dict],
                 deadline: float) -> dict[str, dict]:
-    """Name -> value -> count of each value offered: what is `known`, else counted."""
-    asked = {}
-    for name, values in offered.items():
-        match, _ = runner.run(compiled(query.model_copy(update={name: []})))
-        asked[name] = {value: conjunction([match, {FIELDS[name]: value}])
-                       for value in values if value not in known[name]}
+    """Name -> value -> count of each value offered: what is `known`, else counted with the
+    query `without` that name's own filter."""
+    asked = {name: {value: conjunction([without[name], {FIELDS[name]: value}])
+                    for value in values if value not in known[name]}
+             for name, values in offered.items()}
     counts = counted(clusters, asked, deadline)
     return {name: {value: known[name].get(value, counts[name].get(value))
                    for value in values} for name, values in offered.items()}
 
 
-def frequent(runner: Runner, clusters: Collection, query: ClusterFilter, name: str,
-             deadline: float) -> dict:
+def frequent(clusters: Collection, match: dict, name: str, deadline: float) -> dict:
     """The TOP values of filter `name`'s field most frequent among the first LOOKED matches of
-    the query without that filter, most frequent first: value -> its count if those were all
-    the matches, else None (to be counted). The look reads documents (a label's or an
-    object's index holds no other condition), so it is short."""
+    `match` (the query without that filter), most frequent first: value -> its count if those
+    were all the matches, else None (to be counted). The look reads documents (a label's or
+    an object's index holds no other condition), so it is short."""
     left_ms = int((deadline - time.monotonic()) * 1000)
     if left_ms <= 0:
         return {}
-    match, _ = runner.run(compiled(query.model_copy(update={name: []})))
     field = f"${FIELDS[name]}"
     try:
         [found] = clusters.aggregate([

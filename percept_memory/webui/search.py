@@ -130,12 +130,12 @@ def _narrowing(store: MemoryStore, asked: list[tuple[str, str]], view: str,
         {"_id": {"$in": list(counts.get("object", {}))}}, {"name": 1})}
     facets = []
     for name, title in (("labelled", "Labels"), ("object", "Objects")):
-        chosen = {normal_label(v) if name == "labelled" else v for k, v in rest if k == name}
+        same = normal_label if name == "labelled" else str  # (a label as it is stored)
+        chosen = {same(v) for k, v in rest if k == name}
         values = []
         for value, count in counts.get(name, {}).items():
             text, on = str(value), str(value) in chosen
-            link = ([(k, v) for k, v in rest if k != name or
-                     (normal_label(v) if name == "labelled" else v) != text]
+            link = ([(k, v) for k, v in rest if k != name or same(v) != text]
                     if on else [*rest, (name, text)])
             shown = (f"{names.get(value) or 'unnamed'} ({text[-6:]})" if name == "object"
                      else text)

@@ -166,6 +166,23 @@ def test_the_most_frequent_labels_and_objects_are_offered_with_their_counts(memo
         assert "cup" in counts["labelled"]  # a chosen value is offered, to be taken out
 
 
+def test_a_label_seen_over_the_cap_in_a_short_look_needs_no_count_of_its_own(memory,
+                                                                            monkeypatch):
+    """Over CAP among the matches looked at, it is over CAP among them all: "CAP+" as if
+    counted, when counting gets no time."""
+    monkeypatch.setattr(facets, "CAP", 3)
+    monkeypatch.setattr(facets, "LOOKED", 20)
+    monkeypatch.setattr(facets, "counts_of", lambda collection, queries, *_: [None] * len(queries))
+    engine = QueryEngine(memory)
+    counts = facets.cluster_facet_counts(engine.runner, memory.clusters, ClusterQuery(),
+                                         {"region": [], "robot": []})
+    settled = {value: n for value, n in counts["labelled"].items() if n is not None}
+    assert settled and set(settled.values()) == {4}
+    for value in settled:
+        assert engine.clusters(labelled=[value], limit=0, count=True).total > 3
+    assert None in counts["labelled"].values()  # those seen fewer times still need a count
+
+
 def test_a_label_or_an_object_offered_narrows_the_search_by_keyboard_and_back(memory):
     with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/search?text=cup")

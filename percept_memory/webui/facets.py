@@ -111,8 +111,9 @@ def with_counts(clusters: Collection, without: Mapping[str, dict],
 def frequent(clusters: Collection, match: dict, name: str, deadline: float) -> dict:
     """The TOP values of filter `name`'s field most frequent among the first LOOKED matches of
     `match` (the query without that filter), most frequent first: value -> its count if those
-    were all the matches, else None (to be counted). The look reads documents (a label's or
-    an object's index holds no other condition), so it is short."""
+    were all the matches or it is over CAP among them ("CAP+" all the same), else None (to be
+    counted). The look reads documents (a label's or an object's index holds no other
+    condition), so it is short."""
     left_ms = int((deadline - time.monotonic()) * 1000)
     if left_ms <= 0:
         return {}
@@ -127,7 +128,7 @@ def frequent(clusters: Collection, match: dict, name: str, deadline: float) -> d
     except ExecutionTimeout:
         return {}
     complete = not found["looked"] or found["looked"][0]["n"] < LOOKED
-    return {row["_id"]: min(row["n"], CAP + 1) if complete else None
+    return {row["_id"]: min(row["n"], CAP + 1) if complete or row["n"] > CAP else None
             for row in found["top"] if row["_id"] is not None}
 
 

@@ -112,6 +112,27 @@ def test_field_predicates_hold_on_one_annotation(engine, store):
         expected, key=lambda d: (d["search"]["time"], d["_id"]), reverse=True)]
 
 
+@pytest.mark.parametrize("where", [
+    ["classification:confidence>0.9", "classification:confidence>0.5"],
+    ["classification:confidence>0.5", "classification:confidence>0.9"],
+    ["classification:class_name!=cup", "classification:class_name!=plate"],
+    ["classification:class_name=cup", "classification:class_name=plate"]])
+def test_predicates_repeating_an_operator_on_a_field_all_hold(engine, store, where):
+    """Not the last one only: each bound, each value excluded, counts."""
+    def holds(a, predicate):
+        field, operator, value = re.match(r"classification:(\w+)(>|!=|=)(.+)", predicate).groups()
+        stored_value = a.get(field)
+        if operator == ">":
+            return stored_value is not None and stored_value > float(value)
+        return (stored_value == value) == (operator == "=")
+    expected = {d["_id"] for d in stored(store) if any(
+        a["_type"] == "pm.annotation.Classification" and all(holds(a, p) for p in where)
+        for a in d["annotations"])}
+    hits = {h.id for h in every_page(engine, where=where, limit=500)}
+    assert hits == expected
+    assert engine.clusters(where=where, limit=0, count=True).total == len(expected)
+
+
 def test_predicates_on_mapping_keys_and_on_types_this_version_does_not_know(engine, store):
     perishable = every_page(engine, where="product:properties.perishable=true")
     assert perishable and all(

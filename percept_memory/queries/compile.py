@@ -69,11 +69,18 @@ def predicate_clauses(f: ClusterFilter) -> list[dict]:
     index first (every cluster with that annotation has the label, unless people corrected
     it: those few are in an index of their own), so it needs no field index to be fast."""
     by_type: dict[str, dict[str, dict]] = defaultdict(lambda: defaultdict(dict))
+    again: dict[str, list[dict]] = defaultdict(list)  # an operator repeated on a field: all hold
     for p in f.where:
-        by_type[p.type][p.field][p.operator] = p.value
+        operators = by_type[p.type][p.field]
+        if p.operator in operators:
+            again[p.type].append({p.field: {p.operator: p.value}})
+        else:
+            operators[p.operator] = p.value
     labels = sorted({p.label for p in f.where} - {None})
     return [*({"$or": [{"search.labels": label}, CORRECTED]} for label in labels),
-            *({"annotations": {"$elemMatch": {"_type": type_name, **fields}}}
+            *({"annotations": {"$elemMatch": {
+                "_type": type_name, **fields, **({"$and": again[type_name]}
+                                                 if again[type_name] else {})}}}
               for type_name, fields in by_type.items())]
 
 

@@ -107,9 +107,13 @@ def test_a_rejection_takes_the_cluster_out_of_the_belief_until_undone(memory):
 
 
 def two_objects(store, skip: int = 0) -> tuple:
-    """The latest clusters of two objects of one map, not corrected."""
-    first, second = (store.db[OBJECTS].find({"map": {"$exists": True}}).sort("_id", 1)
-                     .skip(skip).limit(2))
+    """The latest clusters of two objects of one map, not corrected, seen in two scenes (one
+    scene's observations are never one object)."""
+    first, *others = (store.db[OBJECTS].find({"map": {"$exists": True}}).sort("_id", 1)
+                      .skip(skip))
+    scene = store.clusters.find_one({"_id": first["last_cluster"]})["scene_id"]
+    second = next(o for o in others if store.clusters.find_one(
+        {"_id": o["last_cluster"]})["scene_id"] != scene)
     assert first["map"] == second["map"]
     return first["last_cluster"], second["last_cluster"]
 
@@ -140,6 +144,17 @@ def test_a_merge_with_itself_or_an_unknown_cluster_is_refused(memory):
         curation.merge(memory, a, a, author="ana")
     with pytest.raises(NotFound):
         curation.merge(memory, a, ObjectId(), author="ana")
+
+
+def test_a_merge_of_two_observations_of_one_scene_is_refused(memory):
+    scene = next(memory.clusters.aggregate([
+        {"$group": {"_id": "$scene_id", "clusters": {"$push": "$_id"}}},
+        {"$match": {"clusters.1": {"$exists": True}}}, {"$limit": 1}]))
+    a, b = scene["clusters"][:2]
+    before = list(memory.clusters.find({"_id": {"$in": [a, b]}}, {"annotations": 1}))
+    with pytest.raises(curation.NotCorrectable, match="one scene"):
+        curation.merge(memory, a, b, author="ana")
+    assert list(memory.clusters.find({"_id": {"$in": [a, b]}}, {"annotations": 1})) == before
 
 
 def observed_often(store, skip: int = 0) -> tuple:

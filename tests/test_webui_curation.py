@@ -250,7 +250,10 @@ def test_a_cluster_with_a_ground_truth_shows_it_beside_the_predictions(client, m
 
 
 def test_two_objects_are_merged_over_http_and_a_bad_merge_is_refused(client, memory):
-    first, second = memory.db[OBJECTS].find().sort("_id", 1).skip(10).limit(2)
+    first, *others = memory.db[OBJECTS].find().sort("_id", 1).skip(10)
+    scene_of = {c["_id"]: c["scene_id"] for c in memory.clusters.find({}, {"scene_id": 1})}
+    second = next(o for o in others
+                  if scene_of[o["last_cluster"]] != scene_of[first["last_cluster"]])
     error_of(client.post(f"/api/objects/{first['_id']}/merge", headers=JSON,
                          json={"other": str(ObjectId()), "author": "ana"}), 404)
     error = error_of(client.post(f"/api/clusters/{first['last_cluster']}/merge", headers=JSON,

@@ -74,9 +74,9 @@ def merge(store: MemoryStore, cluster_id: ObjectId, other_id: ObjectId,
           author: str) -> SameObject:
     """Say the two clusters show the same object (their objects are merged). Stored on the
     later of the two, naming the earlier, which identity has decided on by then."""
-    earlier, later = _in_time_order(store, [cluster_id, other_id])
     if cluster_id == other_id:
         raise NotCorrectable("other: a cluster is the same object as itself already", "other")
+    earlier, later = _in_time_order(store, [cluster_id, other_id])
     return _append(store, later, lambda: SameObject(other=earlier, **_who(author)))
 
 
@@ -124,6 +124,9 @@ def _in_time_order(store: MemoryStore, cluster_ids: list[ObjectId]) -> list[Obje
     if len({seen[scene].get("map") for scene in scenes.values()}) > 1:
         raise NotCorrectable("other: observations in different maps are never one object",
                              "other")
+    if len(set(scenes.values())) < len(cluster_ids):
+        raise NotCorrectable("other: observations in one scene are of different objects "
+                             "(one object is seen once a scene)", "other")
     return sorted(cluster_ids, key=lambda key: (seen[scenes[key]]["timestamp"], key))
 
 

@@ -239,6 +239,8 @@ class Consolidation:
         twins, taken_looks = self._remembered_twice(decisions, clusters, later, session)
         for keep, twin in twins:
             keep, twin = _after(merged, keep), _after(merged, twin)
+            if self._seen_together(keep, twin, later):  # (two twins seen side by side)
+                continue
             stays = self._merge(keep, twin, scene, known_objects, later, session)
             merged[twin if stays == keep else keep] = stays
         absorbed = {twin for _, twin in twins}  # (their looks are the objects' seen now)
@@ -422,7 +424,9 @@ class Consolidation:
         merged["_id"] = stays
         self.objects.bulk_write([ReplaceOne({"_id": stays}, merged, upsert=True),
                                  DeleteOne({"_id": goes})], session=session)
+        contradicted = self._contradicted(keep, twin, kept, gone, scene, later, session)
         self.events.bulk_write([DeleteMany({"object_id": twin, "scene_id": scene.id}),
+                                DeleteMany({"_id": {"$in": contradicted}}),
                                 UpdateMany({"object_id": goes}, {"$set": {"object_id": stays}})],
                                session=session)
         self.store.clusters.update_many({"object_id": goes}, {"$set": {"object_id": stays}},
@@ -433,6 +437,41 @@ class Consolidation:
         if self._learning:  # (the catalogue's models of both are the one that stays)
             self._learning.merged(keep, twin, stays)
         return stays
+
+    def _contradicted(self, keep, twin, kept: dict, gone: dict, scene: Scene, later: Later,
+                      session) -> list[ObjectId]:
+        """The events of one of the two that another of the other contradicts: while both were
+        remembered, each scene gave each an event, and one object has one belief a scene. Of
+        two in one scene, an observation beats a guess (hidden, disappeared), and of two guesses
+        the one of the history observed last by then (where the object was last seen) stays.
+        Those pending in the batch are dropped from it; the ids of those stored are returned."""
+        since = max(kept["first_seen"], gone["first_seen"])  # the later one's first sighting
+        stored = list(self.events.find({"object_id": {"$in": [keep, twin]}, "time": {"$gte": since},
+                                        "scene_id": {"$ne": scene.id}},
+                                       {"object_id": 1, "scene_id": 1, "time": 1, "cluster_id": 1},
+                                       session=session))
+        pending = [e for e in later.events if e["object_id"] in (keep, twin)
+                   and e["time"] >= since and e["scene_id"] != scene.id]
+        by_scene: dict = {}
+        for event in sorted(stored + pending, key=lambda e: e["time"]):
+            by_scene.setdefault(event["scene_id"], []).append(event)
+        observed = {keep: -1, twin: -1}  # each history's last observation so far
+        dropped = []
+        for events in by_scene.values():
+            for event in events:
+                if event["cluster_id"] is not None:
+                    observed[event["object_id"]] = event["time"]
+            guesses = [e for e in events if e["cluster_id"] is None]
+            if len({e["object_id"] for e in events}) < 2 or not guesses:
+                continue
+            if len(guesses) < len(events):  # an observation of the one, a guess of the other
+                dropped += guesses
+            else:  # two guesses: the one observed earlier goes (ties: the twin's)
+                dropped += [min(guesses, key=lambda e: (observed[e["object_id"]],
+                                                        e["object_id"] == keep))]
+        gone_pending = {id(e) for e in dropped if "_id" not in e}
+        later.events = [e for e in later.events if id(e) not in gone_pending]
+        return [e["_id"] for e in dropped if "_id" in e]
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
         """The scenes with what identity needs of them (no pixels), in the given order, and

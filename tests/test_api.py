@@ -149,6 +149,25 @@ def test_ndjson_bodies_over_the_limit_get_413(client, store):
     assert snapshot(store) == before
 
 
+def test_another_scene_at_a_stored_robot_and_time_is_refused_not_lost(client, store):
+    """The same scene again is stored once (201, created false); a different one at that robot
+    and time would be acknowledged and dropped: it is a 409 naming both, and nothing of its
+    batch is written."""
+    first = valid_scene(seed=3, timestamp=STAMP + 70)
+    assert client.post("/api/scenes", json=first).status_code == 201
+    assert client.post("/api/scenes", json=first).json()["scenes"][0]["created"] is False
+    clusters = store.clusters.count_documents({})
+    other = valid_scene(seed=4, timestamp=STAMP + 70)
+    fresh = valid_scene(seed=5, timestamp=STAMP + 71)
+    answer = client.post("/api/scenes", json=[fresh, other])
+    assert answer.status_code == 409
+    error = answer.json()["error"]
+    assert "has another scene stored at timestamp" in error["message"]
+    assert f"{STAMP + 70}" in error["message"]
+    assert store.clusters.count_documents({}) == clusters
+    assert not store.scenes.count_documents({"timestamp": STAMP + 71})
+
+
 def test_ndjson_is_taken_by_post_scenes_only(client):
     response = client.post("/api/clusters", content=b"{}\n", headers=NDJSON)
     assert response.status_code == 415
@@ -157,7 +176,7 @@ def test_ndjson_is_taken_by_post_scenes_only(client):
 
 def test_a_configured_token_guards_writes(store):
     guarded = TestClient(create_app(store, Settings(token="s3cret")), base_url=LOCAL)
-    scene = valid_scene(seed=8, timestamp=STAMP + 50)
+    scene = valid_scene(seed=8, timestamp=STAMP + 90)  # (a time of its own: a scene's name)
     assert guarded.post("/api/scenes", json=scene).status_code == 401
     wrong = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer nope"})
     assert wrong.status_code == 403

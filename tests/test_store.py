@@ -16,7 +16,7 @@ from percept_memory.converters import Unknown, decode, encode
 from percept_memory.ingest import synthetic
 from percept_memory.memory import documents as docs
 from percept_memory.memory.async_store import AsyncMemoryStore
-from percept_memory.memory.errors import DuplicateId, NotFound, TooLarge
+from percept_memory.memory.errors import DuplicateId, NotFound, SceneExists, TooLarge
 from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
 from percept_memory.memory.types import (
     Cluster,
@@ -170,19 +170,33 @@ def test_storing_the_same_scene_again_is_a_no_op(store, kitchen_rgb):
 
 
 def test_a_scene_is_identified_by_robot_and_time(store):
-    """Another object for the same robot and timestamp is the same scene: its stored ids
-    come back and nothing is written; another robot at that time is another scene."""
-    scene = Scene(timestamp=next(_clock), robot="tiago", clusters=[Cluster(annotations=[
-        Text(text="milk")])])
+    """The same scene again, as another object, is the scene stored: its stored ids come back
+    and nothing is written (a retry), also once it has been consolidated and enriched; a
+    different scene of the robot at that time is refused, not acknowledged and lost; another
+    robot at that time is another scene."""
+    t = next(_clock)
+
+    def milk():
+        return Scene(timestamp=t, robot="tiago", clusters=[Cluster(annotations=[
+            Text(text="milk")])])
+    scene = milk()
     stored = store.put_scene(scene)
+    store.add_annotation(stored.cluster_ids[0], Text(text="lookup: milk 1 l"))  # enrichment
+    store.clusters.update_one({"_id": stored.cluster_ids[0]}, {"$set": {"object_id": ObjectId()}})
     before = snapshot(store)
-    twin = Scene(timestamp=scene.timestamp, robot="tiago", clusters=[Cluster()])
+    twin = milk()
     repeated = store.put_scene(twin)
     assert twin.id is None and twin.clusters[0].id is None  # given no ids that were not stored
     assert not repeated.created
     assert repeated.scene_id == scene.id
-    assert repeated.annotation_ids == stored.annotation_ids
+    assert repeated.annotation_ids[0][:1] == stored.annotation_ids[0]
     assert snapshot(store) == before
+    for other in (Scene(timestamp=scene.timestamp, robot="tiago", clusters=[Cluster()]),
+                  Scene(timestamp=scene.timestamp, robot="tiago", clusters=[Cluster(
+                      annotations=[Text(text="milk")]), Cluster()])):
+        with pytest.raises(SceneExists, match="'tiago' has another scene stored at timestamp"):
+            store.put_scenes([Scene(timestamp=next(_clock), robot="tiago"), other])
+        assert snapshot(store) == before and other.id is None  # nothing of the batch written
     assert store.put_scene(Scene(timestamp=scene.timestamp, robot="pr2")).created
 
 

@@ -95,6 +95,9 @@ class AsyncMemoryStore(StoreBase):
             stored = await self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None
+            scene_docs = await self.scenes.find(docs.stored_query(stored)).to_list()
+            self._same_scenes(prepared, scene_docs, await self.clusters.find(
+                {"_id": {"$in": [c for doc in scene_docs for c in doc["clusters"]]}}).to_list())
             docs.undo_ids(prepared, stored)
             return await self.commit_scenes(docs.prepared(
                 prepared.scenes, await self._stored(prepared.scenes), self.gridfs_threshold))

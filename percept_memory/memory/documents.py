@@ -278,6 +278,55 @@ def stored_by_key(scene_docs: Iterable[Mapping], cluster_docs: Iterable[Mapping]
     return {scene_key(doc): stored_ids(doc, cluster_docs) for doc in scene_docs}
 
 
+# what a scene's or a cluster's document holds that is not what it said: ids, the links
+# consolidation makes, keys derived from it (and grown by what enrichment adds later)
+NOT_CONTENT = {"_id", "scene_id", "object_id", "clusters", "search", "summary"}
+
+
+def differing(write: PreparedWrite, stored_scenes: Iterable[Mapping],
+              stored_clusters: Iterable[Mapping]) -> list[tuple[str, int]]:
+    """The keys of the scenes of `write` to be written whose (robot, timestamp) a stored scene
+    has, with other content: not the same scene sent again. A stored cluster is compared by
+    the annotations it arrived with (enrichment and people append others)."""
+    clusters = {doc["_id"]: doc for doc in stored_clusters}
+    stored = {scene_key(doc): _content(doc, [clusters[c] for c in doc["clusters"]
+                                             if c in clusters], stored=True)
+              for doc in stored_scenes}
+    new_clusters = {doc["_id"]: doc for doc in map(_plain, write.documents.clusters)}
+    found = []
+    for doc in map(_plain, write.documents.scenes):
+        key = scene_key(doc)
+        if key in stored and stored[key] != _content(
+                doc, [new_clusters[c] for c in doc["clusters"]], stored=False):
+            found.append(key)
+    return found
+
+
+def _plain(doc: Mapping) -> dict:
+    """A document as the store reads it back (times aware of their UTC, as CLIENT_OPTIONS)."""
+    if isinstance(doc, RawBSONDocument):
+        return bson.decode(doc.raw, codec_options=bson.CodecOptions(tz_aware=True))
+    return dict(doc)
+
+
+def _content(scene: Mapping, clusters: list[Mapping], stored: bool) -> tuple:
+    def said(cluster: Mapping) -> dict:
+        doc = _without_ids(cluster)
+        if stored:
+            doc["annotations"] = doc.get("annotations", [])[:arrived(cluster)]
+        return doc
+    return _without_ids(scene), [said(c) for c in clusters]
+
+
+def _without_ids(value: Any, top: bool = True) -> Any:
+    if isinstance(value, Mapping):
+        return {k: _without_ids(v, False) for k, v in value.items()
+                if k != "_id" and not (top and k in NOT_CONTENT)}
+    if isinstance(value, list):
+        return [_without_ids(v, False) for v in value]
+    return value
+
+
 def partition(scenes: Iterable[Scene], stored: dict) -> tuple[list[Scene], list[SceneIds]]:
     """The scenes still to write, and the ids of every scene in order: stored ones keep the
     ids they have, new ones get ids assigned (a scene twice in one batch is written once)."""

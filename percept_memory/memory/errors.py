@@ -44,6 +44,17 @@ def duplicate_key(error: Exception) -> dict | None:
     return None
 
 
+class SceneExists(DuplicateId):
+    """Another scene of the robot at the timestamp is stored: a scene is named by its robot
+    and time, so the same one sent again is a no-op, and a different one would be lost."""
+
+    def __init__(self, robot: str, timestamp: int):
+        super().__init__(
+            f"not stored: robot {robot!r} has another scene stored at timestamp {timestamp} "
+            "(a scene is named by its robot and time: the same scene sent again is stored "
+            "once; a different one needs a time of its own)")
+
+
 class Unavailable(StoreError):
     """No MongoDB server could be selected for a write (PMEM_MONGO_TIMEOUT_MS)."""
 

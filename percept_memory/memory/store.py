@@ -31,6 +31,7 @@ from . import documents as docs
 from .errors import (
     DuplicateId,
     NotFound,
+    SceneExists,
     StoreError,
     TooLarge,
     TransactionTooLarge,
@@ -161,6 +162,14 @@ class StoreBase:
         if duplicate_key(error) is None:
             raise error
         return STORED
+
+    @staticmethod
+    def _same_scenes(prepared: docs.PreparedWrite, scene_docs: list, cluster_docs) -> None:
+        """Refuse the write (SceneExists) when one of its scenes is not the scene stored under
+        its robot and time: only the same scene sent again is no write."""
+        if found := docs.differing(prepared, scene_docs, cluster_docs):
+            docs.undo_ids(prepared, {docs.scene_key(scene): None for scene in prepared.scenes})
+            raise SceneExists(*found[0])
 
     @staticmethod
     def _duplicate(error: Exception) -> DuplicateId:
@@ -343,6 +352,9 @@ class MemoryStore(StoreBase):
             stored = self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None
+            scene_docs = list(self.scenes.find(docs.stored_query(stored)))
+            self._same_scenes(prepared, scene_docs, self.clusters.find(
+                {"_id": {"$in": [c for doc in scene_docs for c in doc["clusters"]]}}))
             docs.undo_ids(prepared, stored)
             return self.commit_scenes(docs.prepared(
                 prepared.scenes, self._stored(prepared.scenes), self.gridfs_threshold))

@@ -583,6 +583,8 @@ def test_failed_jobs_show_their_error_in_the_cli_and_the_api(fresh, mongo_uri, d
     (job,) = body["jobs"]
     assert job["state"] == "failed" and "HTTP 400" in job["error"]
     assert "not an image" in job["error"]
+    counts_only = client.get("/api/jobs", params={"limit": 0}).json()  # not every job
+    assert counts_only == {"counts": body["counts"], "jobs": []}
     bad = client.get("/api/jobs", params={"state": "lost", "limit": -1})
     assert bad.status_code == 422 and len(bad.json()["error"]["problems"]) == 2
 

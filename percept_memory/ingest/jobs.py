@@ -199,11 +199,12 @@ class JobQueue:
 
 def job_report(store: MemoryStore, state: State | None = None, limit: int = 20) -> dict:
     """Jobs per state, and the `limit` most recently updated jobs (of `state`, if given),
-    with their last error: what `pmem jobs` and GET /api/jobs show."""
+    with their last error: what `pmem jobs` and GET /api/jobs show. `limit` 0: the counts
+    alone (MongoDB's limit 0 would be every job)."""
     jobs = store.db[JOBS]
     counts = {name: jobs.count_documents({"state": name}) for name in STATES}
     found = jobs.find({"state": state} if state else {}).sort("updated", -1).limit(limit)
-    return {"counts": counts, "jobs": [job_summary(doc) for doc in found]}
+    return {"counts": counts, "jobs": [job_summary(doc) for doc in found] if limit else []}
 
 
 def job_summary(doc: dict) -> dict:

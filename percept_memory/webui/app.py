@@ -173,8 +173,9 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     def list_jobs(state: State | None = None,
                   limit: Annotated[int, Query(ge=0, le=1000)] = 50) -> dict[str, Any]:
         """Counts per state (queued, running, done, failed) and the `limit` most recently
-        updated jobs (of `state`, if given): attempts, worker, the last error of a failed
-        job, the outcome of a done one (backend, cached or fresh, hash distance, latency)."""
+        updated jobs (of `state`, if given; `limit=0`: the counts alone): attempts, worker,
+        the last error of a failed job, the outcome of a done one (backend, cached or fresh,
+        hash distance, latency)."""
         return job_report(store, state, limit)
 
     with_scene_schemas(app)

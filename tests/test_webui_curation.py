@@ -380,3 +380,25 @@ def test_an_object_is_split_from_its_page_by_keyboard_and_the_split_is_audited(m
     def objects(ids):
         return {memory.clusters.find_one({"_id": c})["object_id"] for c in ids}
     assert not objects(row["split_off"]) & objects(row["apart_from"])
+
+
+def test_object_ids_outlive_a_rebuild_and_a_merged_ones_address_leads_to_its_object(client,
+                                                                                    memory):
+    """An object is named by its first observation, so a rebuild (every reject, merge or
+    split asks for one) gives the objects it does not change their ids again, and the page
+    of an object merged into another leads to that one."""
+    named = {o["_id"] for o in memory.db[OBJECTS].find({}, {"_id": 1})}
+    assert all(memory.clusters.find_one({"_id": key}) for key in named)
+    first, *others = memory.db[OBJECTS].find().sort("_id", 1)
+    scene_of = {c["_id"]: c["scene_id"] for c in memory.clusters.find({}, {"scene_id": 1})}
+    second = next(o for o in others
+                  if scene_of[o["last_cluster"]] != scene_of[first["last_cluster"]])
+    curation.merge(memory, first["last_cluster"], second["last_cluster"], author="ana")
+    memory_pipeline(memory).drain(timeout=300)
+    now = {o["_id"] for o in memory.db[OBJECTS].find({}, {"_id": 1})}
+    (gone,) = named - now
+    assert now < named  # all but the one merged away kept their ids
+    kept = memory.clusters.find_one({"_id": gone})["object_id"]
+    answer = client.get(f"/objects/{gone}", follow_redirects=False)
+    assert answer.status_code == 303 and answer.headers["location"] == f"/objects/{kept}"
+    assert client.get(f"/objects/{ObjectId()}").status_code == 404

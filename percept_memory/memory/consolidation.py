@@ -207,8 +207,8 @@ class Consolidation:
         for decision in decisions:
             unseen = decision.explanation in (Explanation.HIDDEN, Explanation.DISAPPEAR)
             cluster = None if unseen else clusters.get(decision.key)
-            if decision.object is None:
-                object_id = ObjectId()
+            if decision.object is None:  # named by its first observation: the same id when
+                object_id = cluster.id  # the map is rebuilt, and its address leads to it later
                 self.created.add(object_id)
             else:
                 object_id = decision.object

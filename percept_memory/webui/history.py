@@ -10,9 +10,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from bson import ObjectId
 from fastapi import APIRouter, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from pymongo import DESCENDING
 
 from percept_memory.memory.schema import EVENTS, OBJECTS
@@ -54,13 +55,16 @@ def routes(store: MemoryStore) -> APIRouter:
     objects, events = store.db[OBJECTS], store.db[EVENTS]
 
     @router.get("/objects/{object_id}")
-    async def object_page(request: Request, object_id: str) -> HTMLResponse:
+    async def object_page(request: Request, object_id: str) -> Response:
         key = parse_id(object_id, "object")
 
         def load():
             believed = objects.find_one({"_id": key})
-            if believed is None:
-                raise PageError(404, f"no object {key}")
+            if believed is None:  # an object is named by its first observation: merged into
+                now = store.clusters.find_one({"_id": key}, {"object_id": 1})  # another since?
+                if now is None or now.get("object_id") is None:
+                    raise PageError(404, f"no object {key}")
+                return now["object_id"]
             history = list(events.find({"object_id": key}).sort("time", DESCENDING)
                            .limit(EVENTS_SHOWN))
             placed = [e for e in reversed(history) if e.get("position")]
@@ -69,7 +73,10 @@ def routes(store: MemoryStore) -> APIRouter:
             candidates = curation.merge_candidates(store, believed, history)
             return believed, history, view, regions, track(view, placed), candidates
 
-        believed, history, view, regions, marks, candidates = await run_in_threadpool(load)
+        loaded = await run_in_threadpool(load)
+        if isinstance(loaded, ObjectId):
+            return RedirectResponse(f"/objects/{loaded}", status_code=303)
+        believed, history, view, regions, marks, candidates = loaded
         return page(request, "object.html", {
             "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
             "view": view, "regions": regions, "track": marks, "timeline": timeline(history),

@@ -112,7 +112,8 @@ def test_a_wrong_method_gets_405_with_allow(client):
 
 @pytest.mark.parametrize("method, path, allowed", [
     ("DELETE", "/api/scenes", "POST"), ("PUT", "/api/jobs", "GET"),
-    ("PATCH", "/api/scenes", "POST"), ("HEAD", "/api/scenes", "POST")])
+    ("PATCH", "/api/scenes", "POST"), ("HEAD", "/api/scenes", "POST"),
+    ("PUT", "/api/clusters", "GET, POST"), ("DELETE", "/api/where-is", "GET, POST")])
 def test_a_method_no_route_takes_gets_405_whatever_its_body(client, method, path, allowed):
     """Not 415 for a body without a type: the method is what is wrong."""
     response = client.request(method, path)

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
+from starlette.routing import Match
 
 from percept_memory.ingest.jobs import State, job_report
 from percept_memory.ingest.json_batches import NotScenes
@@ -45,6 +46,16 @@ from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
 from .scene3d import cloud_router
+
+
+def allowed(app: FastAPI, request: Request) -> set[str]:
+    """The methods the routes of the request's path take (Starlette's 405 names the first
+    route's: /api/clusters takes GET and POST)."""
+    return {method for method in METHODS for route in app.router.routes
+            if route.matches({**request.scope, "method": method})[0] == Match.FULL}
+
+
+METHODS = ("GET", "POST", "PUT", "PATCH", "DELETE")
 
 
 def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
@@ -94,7 +105,10 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     @app.exception_handler(HTTPException)
     async def _http_error(request: Request, error: HTTPException) -> JSONResponse:
-        return error_response(error.status_code, str(error.detail), headers=error.headers)
+        headers = error.headers
+        if error.status_code == 405:  # every route of the path, not only the first one's
+            headers = {**(headers or {}), "Allow": ", ".join(sorted(allowed(app, request)))}
+        return error_response(error.status_code, str(error.detail), headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def _request_error(request: Request, error: RequestValidationError) -> JSONResponse:

@@ -15,6 +15,7 @@ from playwright.sync_api import expect
 
 from percept_memory.demo import kitchen_week
 from percept_memory.memory.settings import Settings
+from percept_memory.memory.types import timestamp_from_iso
 from percept_memory.queries.engine import QueryEngine
 from percept_memory.queries.model import ClusterQuery
 from percept_memory.webui import facets, histogram
@@ -277,6 +278,21 @@ def test_the_histogram_counts_every_selected_scene_once(memory, filters):
         assert memory.scenes.count_documents(linked) == bar.scenes
 
 
+def test_until_is_through_the_precision_it_is_written_in_and_a_type_shows_chosen(memory):
+    """`until` a minute, a second or a millisecond takes in all of it, as a form's time field
+    (minutes or seconds) means it; nanoseconds are exact. A type named by its short name is
+    shown chosen, so the form keeps it."""
+    stamp = memory.scenes.find_one({}, sort=[("timestamp", -1)])["timestamp"]
+    types = choices_of(memory)["type"]
+    moment = histogram._iso(stamp)  # to the millisecond, below the stamp's own digits
+    for until in (moment[:16], moment[:19], moment, str(stamp)):
+        query = scene_filter({**dict.fromkeys((*CHOICES, "since"), ""), "until": until}, types)
+        assert memory.scenes.count_documents(query) == memory.scenes.count_documents({}), until
+    client = TestClient(create_app(memory, Settings(consolidator=False)), base_url=LOCAL)
+    shown = client.get("/scenes", params={"type": "Logo"}).text
+    assert '<option value="pm.annotation.Logo" selected>' in shown
+
+
 def test_no_scenes_no_histogram(memory):
     assert histogram.scene_histogram(memory.scenes, {"robot": "nobody"}) is None
 
@@ -312,6 +328,16 @@ def test_a_bar_of_the_histogram_sets_the_time_range_by_keyboard(memory):
         with tab.expect_navigation():
             tab.keyboard.press("Enter")
         assert "robot=tiago" in tab.url and "since=" in tab.url and "until=" in tab.url
+        expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
+        linked = dict(parse_qsl(urlsplit(tab.url).query))
+        for name in ("since", "until"):  # the form's time fields take the bar's times...
+            given = tab.locator(f"input[name={name}]").input_value()
+            assert timestamp_from_iso(given) == timestamp_from_iso(linked[name])
+        with tab.expect_navigation():
+            tab.locator("form.filters button[type=submit]").click()  # ...and keep them
+        again = dict(parse_qsl(urlsplit(tab.url).query))
+        for name in ("since", "until"):
+            assert timestamp_from_iso(again[name]) == timestamp_from_iso(linked[name])
         expect(tab.locator("table.scenes tbody tr")).to_have_count(min(scenes, 20))
 
 

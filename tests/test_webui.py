@@ -45,7 +45,7 @@ from percept_memory.queries.results import ObjectAt
 from percept_memory.webui import belief_map, live, render, search, time_axis
 from percept_memory.webui import history as history_page
 from percept_memory.webui.app import create_app
-from percept_memory.webui.html import nanoseconds
+from percept_memory.webui.html import nanoseconds, nanoseconds_through
 from percept_memory.webui.scene_log import CHOICES
 
 from .conftest import LOCAL, ROBOSHERLOCK, ingest_consolidated, served
@@ -705,7 +705,7 @@ def test_each_scene_log_filter_shows_every_match_once_in_order(client, store, we
     seen, _ = walk_scene_log(client, "/scenes?" + urlencode(
         {**combined, "since": since, "until": until}))
     expected = brute_force_scene_log(store, **combined, since=nanoseconds(since, "since"),
-                                     until=nanoseconds(until, "until"))
+                                     until=nanoseconds_through(until, "until") - 1)
     assert seen == expected and expected
 
 

@@ -15,7 +15,7 @@ import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 
 from pymongo import ASCENDING, DESCENDING
 from pymongo.collection import Collection
@@ -24,7 +24,7 @@ from pymongo.errors import ExecutionTimeout
 BARS = 24
 WIDTH, HEIGHT = 960, 64
 MIN_HEIGHT = 2  # px: a bar with any scene shows, however tall the tallest
-MICROSECOND = 1000  # ns: the finest a page's time field says
+MILLISECOND = 1_000_000  # ns: the finest a browser's time field takes
 BUDGET_MS = 80  # counted beside the facet counts (webui/scene_log.py), not after them
 COUNTERS = ThreadPoolExecutor(max_workers=3, thread_name_prefix="pmem-histogram")
 
@@ -44,7 +44,7 @@ class Bar:
 
     @property
     def until(self) -> str:
-        return _iso(self.end - MICROSECOND)  # the log's `until` is inclusive
+        return _iso(self.end - MILLISECOND)  # the log's `until`: through that millisecond
 
 
 @dataclass
@@ -64,10 +64,9 @@ def scene_histogram(scenes: Collection, query: Mapping) -> Histogram | None:
         return None
     last = scenes.find_one(query, {"timestamp": 1},
                            sort=[(key, DESCENDING) for key, _ in order])
-    # whole microseconds, as the links give them (a bar's link leaves out what its last
-    # microsecond holds beyond the whole one: the log's `until` is to the microsecond)
-    start = first["timestamp"] // MICROSECOND * MICROSECOND
-    step = -(-(last["timestamp"] + MICROSECOND - start) // (BARS * MICROSECOND)) * MICROSECOND
+    # whole milliseconds, as the links give them (and as a browser's time field keeps them)
+    start = first["timestamp"] // MILLISECOND * MILLISECOND
+    step = -(-(last["timestamp"] + MILLISECOND - start) // (BARS * MILLISECOND)) * MILLISECOND
     edges = [start + i * step for i in range(BARS + 1)]
     spans = [{**query, "timestamp": {"$gte": a, "$lt": b}}  # within the query's own range
              for a, b in zip(edges, edges[1:], strict=False)]
@@ -101,6 +100,10 @@ def bar_counts(scenes: Collection, spans: list[dict], deadline: float) -> list[i
 
 
 def _iso(nanoseconds: int) -> str:
-    """A time as the log's `since` and `until` take it, to the microsecond, UTC."""
-    moment = datetime.fromtimestamp(nanoseconds // MICROSECOND / 1_000_000, tz=UTC)
-    return moment.strftime("%Y-%m-%dT%H:%M:%S.%f")
+    """A time as the log's `since` and `until` take it, to the millisecond (a browser's
+    datetime-local field takes no finer), UTC."""
+    moment = EPOCH + timedelta(milliseconds=nanoseconds // MILLISECOND)  # (no float rounding)
+    return moment.strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3]
+
+
+EPOCH = datetime(1970, 1, 1, tzinfo=UTC)

@@ -11,6 +11,7 @@ Jinja2 escapes every value, so OCR text, web results and annotator logs are show
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 from bson import ObjectId
@@ -80,12 +81,34 @@ def parse_id(text: str, kind: str) -> ObjectId:
 
 
 def nanoseconds(text: str, name: str) -> int:
-    """An ISO 8601 date or time (UTC unless it says otherwise) as nanoseconds since the epoch."""
+    """An ISO 8601 date or time (UTC unless it says otherwise), or nanoseconds since the epoch,
+    as nanoseconds since the epoch."""
+    if text.isascii() and text.strip().isdigit() and len(text.strip()) <= 19:
+        return int(text)
     try:
         return timestamp_from_iso(text)
     except ValueError:
         raise PageError(422, f"{name}: {text!r} is not a date or time such as "
-                             "2024-05-06T08:30") from None
+                             "2024-05-06T08:30, or nanoseconds") from None
+
+
+def nanoseconds_through(text: str, name: str) -> int:
+    """The first nanosecond after the moment `text` names, to the precision it is written
+    in: "until 08:30" is until 08:30 has passed (a form's time field gives minutes or
+    seconds, a bar of the histogram milliseconds), "until 2024-05-06" the whole day."""
+    start = nanoseconds(text, name)
+    if text.strip().isdigit():
+        return start + 1
+    clock = CLOCK.search(text)
+    if clock is None:  # a date
+        return start + 86_400 * 10**9
+    minutes, seconds, fraction = clock.groups()
+    if fraction:  # in milli-, micro- or nanoseconds (a browser writes .31 for .310)
+        return start + 10 ** (9 - 3 * -(-len(fraction) // 3))
+    return start + 10**9 * (1 if seconds else 60 if minutes else 3600)
+
+
+CLOCK = re.compile(r"[T ]\d\d(:\d\d)?(:\d\d)?(?:[.,](\d{1,9}))?")
 
 
 def bounded_int(text: str, name: str, low: int, high: int) -> int:

@@ -25,7 +25,7 @@ from percept_memory.queries.model import canonical_type
 
 from .facets import facet_counts, shown
 from .histogram import Bar, scene_histogram
-from .html import LIST_FIELDS, SCRIPT_CSP, PageError, nanoseconds, page
+from .html import LIST_FIELDS, SCRIPT_CSP, PageError, nanoseconds, nanoseconds_through, page
 
 SCENES_PER_PAGE = 20
 CHOICES = {"robot": "robot", "region": "summary.regions", "annotator": "summary.annotators",
@@ -63,6 +63,8 @@ def routes(store: MemoryStore) -> APIRouter:
             return list(found)
 
         choices, query = await run_in_threadpool(choose)
+        if type:  # shown chosen as stored (`Logo` is pm.annotation.Logo)
+            filters["type"] = query[CHOICES["type"]]
         # the counts, the histogram and the page at once: each its own commands, each within
         # its own time budget, so the page waits for the slowest, not for their sum
         scenes, counts, histogram = await asyncio.gather(
@@ -95,8 +97,8 @@ def scene_filter(filters: dict[str, str], stored_types: list[str]) -> dict:
                    if filters[name]}
     if filters["type"]:
         query[CHOICES["type"]] = annotation_type(filters["type"], stored_types)
-    span = {op: nanoseconds(filters[name], name)
-            for op, name in (("$gte", "since"), ("$lte", "until")) if filters[name]}
+    span = {op: read(filters[name], name) for op, name, read in (
+        ("$gte", "since", nanoseconds), ("$lt", "until", nanoseconds_through)) if filters[name]}
     if span:
         query["timestamp"] = span
     return query

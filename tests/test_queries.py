@@ -10,6 +10,7 @@ from collections import Counter
 
 import pytest
 from bson import ObjectId
+from pydantic import ValidationError
 from pymongo import AsyncMongoClient
 from rapidfuzz.distance import Levenshtein
 
@@ -348,8 +349,14 @@ def test_where_was_lists_the_places_of_an_object_in_time_order(engine, store, ki
         t = doc["search"]["time"]
         assert any(p.since <= t <= p.last_seen and p.region == doc["search"]["region"]
                    for p in places)
-    windowed = engine.where_was(str(fairy.object_id), after=places[0].last_seen)[0].places
-    assert sum(p.observations for p in windowed) < len(observed)
+    # within a window: the places it was at during it, each whole (not begun by a guess)
+    after = places[0].last_seen + 1
+    windowed = engine.where_was(str(fairy.object_id), after=after)[0].places
+    assert windowed and windowed == [p for p in places if p.until is None or p.until >= after]
+    early = engine.where_was(str(fairy.object_id), before=places[0].since)[0].places
+    assert [(p.since, p.observations) for p in early] == [(places[0].since, 1)]
+    with pytest.raises(ValidationError, match="later than"):
+        engine.where_was("fairy", after=after, before=after - 1)
 
 
 # --- statistics -----------------------------------------------------------------------------

@@ -426,6 +426,12 @@ class History(About):
     after: Time | None = None
     before: Time | None = None
 
+    @model_validator(mode="after")
+    def _in_order(self):
+        if None not in (self.after, self.before) and self.after > self.before:
+            raise ValueError("`after` is later than `before`")
+        return self
+
 
 class Place(Strict):
     """A region by name, or a volume, in one map or in every map; or a whole map."""

@@ -142,9 +142,11 @@ def last_seen(q: About) -> Plan[list[Sighting]]:
 
 
 def where_was(q: History) -> Plan[list[HistoryAnswer]]:
-    """The places each object X names was at, with the times, oldest first."""
+    """The places each object X names was at, with the times, oldest first; within a time
+    window, those it was at during it, each whole (its stay begun before the window keeps its
+    start and its sightings)."""
     found = yield from resolve(q.x, q.limit)
-    window = time_window(q.after, q.before)
+    window = time_window(None, q.before)
     events = yield Find(EVENTS, {"object_id": {"$in": [o["_id"] for o, _ in found]},
                                  **({"time": window} if window else {})},
                         {"object_id": 1, "time": 1, "explanation": 1, "region": 1,
@@ -152,8 +154,10 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
     by_object: dict = {}
     for event in reversed(events):  # oldest first
         by_object.setdefault(event["object_id"], []).append(event)
-    return [HistoryAnswer(object=_belief(o, match), places=stays(by_object.get(o["_id"], [])))
-            for o, match in found]
+    return [HistoryAnswer(object=_belief(o, match), places=[
+        stay for stay in stays(by_object.get(o["_id"], []))
+        if q.after is None or stay.until is None or stay.until >= q.after])
+        for o, match in found]
 
 
 def stays(events: list[dict]) -> list[Stay]:

@@ -622,9 +622,13 @@ def test_bad_urls_get_a_page_naming_the_problem(client, path, status):
     assert 'role="alert"' in response.text
 
 
-def test_missing_images_are_404(client, hostile, sample):
+def test_missing_images_are_404_and_no_pixels_show_as_no_image(client, hostile, sample):
+    """A named image that is not there is a 404; a list's thumbnail or crop of a scene or a
+    cluster stored without pixels shows "no image" (the row cannot know before asking)."""
     assert client.get(f"/img/scenes/{sample.id}/images/nothing").status_code == 404
-    assert client.get(f"/img/clusters/{hostile.clusters[0].id}/crop").status_code == 404
+    crop = client.get(f"/img/clusters/{hostile.clusters[0].id}/crop")
+    assert crop.status_code == 200 and crop.headers["content-type"] == "image/svg+xml"
+    assert b"no image" in crop.content
     depth = client.get(f"/img/scenes/{sample.id}/images/depth")
     assert depth.status_code == 200 and depth.content.startswith(b"\x89PNG")
 

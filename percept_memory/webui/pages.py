@@ -45,6 +45,13 @@ from .images import display_png
 THUMB_SIDE = 160
 PLAN_WIDTH, PLAN_HEIGHT = 640, 400
 CACHED = {"Cache-Control": "max-age=3600"}  # nosniff and the rest: guard.py, on all
+# what a page's <img> of a scene or cluster with no pixels shows (a list row does not know
+# before asking: a broken image, a 404 in the console, said nothing)
+NO_IMAGE = Response(
+    '<svg xmlns="http://www.w3.org/2000/svg" width="64" height="48" viewBox="0 0 64 48">'
+    '<rect width="64" height="48" fill="#eee"/><text x="32" y="28" font-size="9" '
+    'font-family="sans-serif" text-anchor="middle" fill="#666">no image</text></svg>',
+    media_type="image/svg+xml", headers=CACHED)
 
 
 def mount_pages(app: FastAPI, store: MemoryStore, settings: Settings) -> None:
@@ -134,8 +141,8 @@ def page_routes(store: MemoryStore) -> APIRouter:
         scene = await stored(store.get_scene, scene_id, "scene")
         crops = (roi.crop for c in scene.clusters if (roi := c.hypothesis_of(ImageROI)))
         image = next(iter(scene.images.values()), None) or next(filter(None, crops), None)
-        if image is None:
-            raise PageError(404, f"scene {scene_id} has no image and no crop")
+        if image is None:  # (its clusters may be positions alone, or its files left out)
+            return NO_IMAGE
         return await _png(image, THUMB_SIDE)
 
     @router.get("/img/clusters/{cluster_id}/crop")
@@ -143,7 +150,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
         cluster = await stored(store.get_cluster, cluster_id, "cluster")
         roi = cluster.hypothesis_of(ImageROI)
         if roi is None or roi.crop is None:
-            raise PageError(404, f"cluster {cluster_id} has no crop")
+            return NO_IMAGE
         return await _png(roi.crop)
 
     return router

@@ -924,23 +924,29 @@ def test_no_parameter_value_gives_a_server_error(client):
 
 
 def test_a_search_exports_its_results_as_training_data(client):
-    """The search page's export form carries the search's filter to /api/export: the zip
-    holds exactly the observations the search found."""
+    """The search page's export form carries the search's filter to its export: the zip
+    holds exactly the observations the search found; what it cannot export is a page naming
+    why, not the API's JSON."""
     import io
     import json
     import re
     import zipfile
 
     page = client.get("/search?text=cereal&sort=newest").text
-    form = page[page.index('action="/api/export"'):]
+    form = page[page.index('action="/search/export"'):]
     form = form[:form.index("</form>")]
     hidden = re.findall(r'type="hidden" name="([^"]+)" value="([^"]*)"', form)
     assert ("text", "cereal") in hidden and all(name != "sort" for name, _ in hidden)
     total = client.get("/api/clusters", params={"text": "cereal", "count": "true"}).json()["total"]
 
-    response = client.get("/api/export", params=[*hidden, ("format", "imagefolder"),
-                                                  ("images", ""), ("label", "object")])
-    assert response.status_code == 200
+    response = client.get("/search/export", params=[*hidden, ("format", "imagefolder"),
+                                                     ("images", ""), ("label", "object")])
+    assert response.status_code == 200 and response.headers["content-type"] == "application/zip"
+    for refused, why in (([("format", "jsonl"), ("images", "crops")], "images"),
+                         ([("format", "coco"), ("label", "ground_truth")], "skipped")):
+        page = client.get("/search/export", params=[*hidden, *refused])
+        assert page.status_code == 422 and page.headers["content-type"].startswith("text/html")
+        assert 'role="alert"' in page.text and why in page.text, page.text[-800:]
     archive = zipfile.ZipFile(io.BytesIO(response.content))
     manifest = json.loads(archive.read("manifest.json"))
     provenance = archive.read("provenance.jsonl").decode().splitlines()

@@ -23,6 +23,7 @@ from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params
 
 from .errors import READ_ERRORS, WRITE_ERRORS
+from .html import PageError
 from .queries import query_parameters, small_body
 
 DESCRIPTION = (ExportQuery.__doc__ or "") + (
@@ -34,37 +35,61 @@ ZIP = {200: {"content": {"application/zip": {}}, "description": "the export as a
 
 
 def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
-    router = APIRouter(prefix="/api", tags=["export"])
+    router = APIRouter(tags=["export"])
 
     def started(query: ExportQuery) -> StreamingResponse:
-        try:
-            export = Export(store, query, settings)
-            chunks = export.started()
-        except (QueryError, NothingExported) as error:
-            raise HTTPException(422, str(error)) from None
+        """The zip's response, its export run up to its first cluster (raises QueryError or
+        NothingExported before any byte is sent)."""
+        export = Export(store, query, settings)
+        chunks = export.started()
         return StreamingResponse(
             chunks, media_type="application/zip",
             headers={"Content-Disposition": f'attachment; filename="pmem-{query.format}.zip"',
                      "X-Clusters-Selected": str(export.total)})
 
-    @router.get("/export", summary="Export training data (query string)",
+    def answered(query: ExportQuery) -> StreamingResponse:
+        try:
+            return started(query)
+        except (QueryError, NothingExported) as error:
+            raise HTTPException(422, str(error)) from None
+
+    @router.get("/api/export", summary="Export training data (query string)",
                 description=DESCRIPTION, response_class=StreamingResponse,
                 responses={**ZIP, **READ_ERRORS},
                 openapi_extra={"parameters": query_parameters(ExportQuery)})
     async def export_by_query_string(request: Request) -> StreamingResponse:
         try:
-            # a blank value is an option left unset (as HTML forms send them)
-            query = from_params(ExportQuery, [(k, v) for k, v in
-                                              request.query_params.multi_items() if v.strip()])
+            query = form_query(request)
         except ValidationError as error:
             raise RequestValidationError(error.errors(include_url=False)) from None
-        return await run_in_threadpool(started, query)
+        return await run_in_threadpool(answered, query)
 
-    @router.post("/export", summary="Export training data (JSON body)",
+    @router.get("/search/export", include_in_schema=False, response_model=None)
+    async def export_from_the_search_page(request: Request) -> StreamingResponse:
+        """The search page's export form: what it cannot export is a page naming why (with
+        the way back), not the API's JSON."""
+        try:
+            query = form_query(request)
+            return await run_in_threadpool(started, query)
+        except ValidationError as error:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'export'}: {e['msg']}"
+                                 for e in error.errors(include_url=False))
+            raise PageError(422, f"not exported: {problems}") from None
+        except (QueryError, NothingExported) as error:
+            raise PageError(422, f"not exported: {error}") from None
+
+    @router.post("/api/export", summary="Export training data (JSON body)",
                  description=DESCRIPTION, response_class=StreamingResponse,
                  responses={**ZIP, **WRITE_ERRORS})
     async def export_by_json_body(query: Annotated[ExportQuery, Body()],
                                   _: Annotated[None, Depends(small_body)]) -> StreamingResponse:
-        return await run_in_threadpool(started, query)
+        return await run_in_threadpool(answered, query)
 
     return router
+
+
+def form_query(request: Request) -> ExportQuery:
+    """The export the query string asks for; a blank value is an option left unset (as HTML
+    forms send them)."""
+    return from_params(ExportQuery, [(k, v) for k, v in request.query_params.multi_items()
+                                     if v.strip()])

@@ -142,3 +142,26 @@ def test_a_box_is_counted_from_the_index_alone(space, store):
         assert plan["indexes"] == ["morton_xyz"], plan
         if "box" in volume:
             assert "FETCH" not in plan["stages"], plan
+
+
+def test_a_map_keeps_positions_of_other_frames_out(space, store):
+    """Two maps' positions are in two frames: the same coordinates in another map are another
+    place. `map` narrows any query to its maps (alone, by its own index), the box too; data
+    stored before clusters knew their map get it by `reindex`."""
+    engine, by_id = space
+    elsewhere = Scene(timestamp=5_000, robot="probe", map="another building", clusters=[
+        Cluster(annotations=[Location(position=p)]) for p in list(by_id.values())[:5]])
+    store.put_scene(elsewhere)
+    theirs = {c.id for c in elsewhere.clusters}
+    box = Box(low=(-1e4,) * 3, high=(1e4,) * 3)
+    assert all_hits(engine, box=box) >= theirs
+    assert all_hits(engine, box=box, map="another building") == theirs
+    assert all_hits(engine, box=box, map="probe/map").isdisjoint(theirs)
+    assert all_hits(engine, near=(0, 0, 0), k=1000, map="another building") == theirs
+    plans: list = []
+    QueryEngine(store, explain=plans).clusters(map="another building", limit=3)
+    assert [p["indexes"] for p in plans] == [["map_newest"]], plans
+    store.clusters.update_many({"_id": {"$in": list(theirs)}}, {"$unset": {"search.map": ""}})
+    assert not all_hits(engine, map="another building")
+    store.reindex()
+    assert all_hits(engine, map="another building") == theirs

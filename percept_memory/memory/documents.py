@@ -165,7 +165,7 @@ def scene_documents(scenes: Iterable[Scene], threshold: int) -> Documents:
     out = Documents()
     for scene in scenes:
         clusters = [
-            _cluster_document(c, scene.timestamp, scene.robot, threshold, out)
+            _cluster_document(c, scene.timestamp, scene.robot, scene.map, threshold, out)
             for c in scene.clusters
         ]
         doc = out.encode(scene.model_copy(update={"clusters": []}), threshold)  # stored apart
@@ -231,10 +231,12 @@ def _sources(annotations: Iterable[Mapping]) -> set[str]:
 
 
 def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Documents:
-    """The new document of a stored cluster, keeping its scene's time and robot."""
+    """The new document of a stored cluster, keeping its scene's time, robot and map (none
+    for data stored before clusters knew it, until `reindex`)."""
     out = Documents()
     search = stored[SEARCH_KEY]
-    doc = _cluster_document(cluster, search["time"], search["robot"], threshold, out)
+    doc = _cluster_document(cluster, search["time"], search["robot"], search.get("map"),
+                            threshold, out)
     doc[ARRIVED_KEY] = arrived(stored)
     out.clusters.append(doc)
     return out
@@ -251,12 +253,11 @@ def as_bson(doc: dict) -> RawBSONDocument:
     return RawBSONDocument(bson.encode(doc))
 
 
-def _cluster_document(
-    cluster: Cluster, timestamp: int, robot: str, threshold: int, out: Documents
-) -> dict:
+def _cluster_document(cluster: Cluster, timestamp: int, robot: str, map_name: str | None,
+                      threshold: int, out: Documents) -> dict:
     doc = out.encode(cluster, threshold)
     doc[ARRIVED_KEY] = len(cluster.annotations)
-    doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot)
+    doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot, map_name)
     out.terms.update(filter(search_keys.misspellable, search["terms"]))
     out.labels.update(label for label in search["labels"] if not search_keys.one_word(label))
     return doc
@@ -278,9 +279,10 @@ def stored_by_key(scene_docs: Iterable[Mapping], cluster_docs: Iterable[Mapping]
     return {scene_key(doc): stored_ids(doc, cluster_docs) for doc in scene_docs}
 
 
-# what a scene's or a cluster's document holds that is not what it said: ids, the links
-# consolidation makes, keys derived from it (and grown by what enrichment adds later)
-NOT_CONTENT = {"_id", "scene_id", "object_id", "clusters", "search", "summary"}
+# what a scene's or a cluster's document holds that is not what it saw: ids, the links
+# consolidation makes, keys derived from it (and grown by what enrichment adds later), and
+# the log (how long its annotators took, which a scene made again, re-imported, measures anew)
+NOT_CONTENT = {"_id", "scene_id", "object_id", "clusters", "search", "summary", "log"}
 
 
 def differing(write: PreparedWrite, stored_scenes: Iterable[Mapping],
@@ -361,8 +363,9 @@ def scene_key(scene: Scene | Mapping) -> tuple[str, int]:
     return scene.robot, scene.timestamp
 
 
-def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
-    """The denormalised query fields of a cluster."""
+def search_fields(cluster: Cluster, timestamp: int, robot: str, map_name: str | None) -> dict:
+    """The denormalised query fields of a cluster (its scene's time, robot and map: positions
+    of two maps are in two frames)."""
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
     said = in_force(annotations)  # a correction taken back is no longer found by its label
     labels = {search_keys.normal_label(label) for a in said for label in a.labels()} - {""}
@@ -371,6 +374,7 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str) -> dict:
     return {
         "time": timestamp,
         "robot": robot,
+        "map": map_name,
         "region": cluster.region,
         **search_keys.place(position),
         "labels": sorted(labels),

@@ -67,6 +67,7 @@ INDEXES: dict[str, list[IndexModel]] = {
         _newest(name="newest"),
         _newest("search.region", name="region_newest"),
         _newest("search.robot", name="robot_newest"),
+        _newest("search.map", name="map_newest"),
         _newest("search.terms", name="terms_newest"),
         # a text's matches counted by region and by robot from the index's keys alone (the
         # search page's facets, webui/facets.py): ~60 B a cluster at a million, since

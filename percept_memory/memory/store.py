@@ -468,6 +468,9 @@ class MemoryStore(StoreBase):
         scene's summary, the vocabulary) after an upgrade changed how it is derived: data
         stored by an older version then answers every query. Returns the clusters rewritten."""
         count = 0
+        for scene in self.scenes.find({}, {"map": 1}):  # (clusters stored before knew no map)
+            self.clusters.update_many({"scene_id": scene["_id"]},
+                                      {"$set": {"search.map": scene.get("map")}})
         for doc in self.clusters.find({}, {"_id": 1}).sort("_id", 1):
             self._rewrite_cluster(doc["_id"], lambda cluster: cluster)
             count += 1

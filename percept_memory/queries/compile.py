@@ -34,7 +34,8 @@ def cluster_filter(f: ClusterFilter, text: TextQuery | None = None,
     clauses: list[dict] = []
     labels = sorted({normal_label(label) for label in f.labelled})
     for values, field in ((f.region, "search.region"), (f.robot, "search.robot"),
-                          (f.object, "object_id"), (labels, "search.labels")):
+                          (f.map, "search.map"), (f.object, "object_id"),
+                          (labels, "search.labels")):
         if values:
             clauses.append({field: {"$in": list(values)}})
     if window := time_window(f.after, f.before, f.at):

@@ -351,6 +351,9 @@ class ClusterFilter(Strict):
                                 "word separators aside: cereal, SiggBottle = sigg bottle")
     robot: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="robot names (any of them)")
+    map: Annotated[list[Name], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
+        default=[], description="maps (any of them): positions, boxes and spheres are in one "
+                                "map's frame")
     object: Annotated[list[Id], BeforeValidator(listed), Field(max_length=MAX_LIST)] = Field(
         default=[], description="object ids (any of them)")
     box: Box | None = Field(default=None, description="x0,y0,z0,x1,y1,z1 in the map frame")

@@ -369,8 +369,7 @@ class ClusterFilter(Strict):
     def _consistent(self):
         if self.at is not None and (self.after is not None or self.before is not None):
             raise ValueError("give `at`, or `after` and/or `before`, not both")
-        if None not in (self.after, self.before) and self.after > self.before:
-            raise ValueError("`after` is later than `before`")
+        in_order(self.after, self.before)
         if self.meaning and not self.text:
             raise ValueError("meaning needs text")
         if self.text is not None and len(words(self.text)) > MAX_WORDS:
@@ -431,9 +430,14 @@ class History(About):
 
     @model_validator(mode="after")
     def _in_order(self):
-        if None not in (self.after, self.before) and self.after > self.before:
-            raise ValueError("`after` is later than `before`")
+        in_order(self.after, self.before)
         return self
+
+
+def in_order(after: int | None, before: int | None) -> None:
+    """A time window's ends, when both are given, in order."""
+    if None not in (after, before) and after > before:
+        raise ValueError("`after` is later than `before`")
 
 
 class Place(Strict):

@@ -21,6 +21,7 @@ from percept_memory.cli import main
 from percept_memory.ingest.rgbd import SampleError, read_pcd, read_samples
 from percept_memory.ingest.scene_log import read_scene_log, write_scene_log
 from percept_memory.ingest.service import IngestService
+from percept_memory.memory.errors import SceneExists
 from percept_memory.memory.types import (
     ColorHistogram,
     Geometry,
@@ -268,9 +269,15 @@ def test_stored_bit_exact_and_imported_once(store, kitchen, low_noise):
             assert same_array(roi(theirs).mask.data, roi(mine).mask.data)
             assert roi(theirs).phash == roi(mine).phash
 
-    again = [landed.ids for landed in service.ingest_stream(enumerate(read_samples(SAMPLES)))]
+    again = [landed.ids for landed in service.ingest_stream(enumerate(
+        [*read_samples(KITCHEN), *read_samples(LOW_NOISE)]))]
     assert [i.scene_id for i in again] == [i.scene_id for i in ids]
     assert not any(i.created for i in again)
+    assert store.counts() == counts
+    # read from their parent folder, the same files are scenes of another map (the folder's
+    # name): not the scenes stored, refused by name rather than acknowledged and dropped
+    with pytest.raises(SceneExists, match="'pr2' has another scene stored"):
+        list(service.ingest_stream(enumerate(read_samples(SAMPLES))))
     assert store.counts() == counts
 
 

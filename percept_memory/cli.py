@@ -343,8 +343,11 @@ def schema() -> None:
 def listening(host: str, port: int) -> socket.socket:
     """A socket bound to host:port for the web app, or the one-line error saying why not (a
     port in use, a host that is not this machine's): taken before anything is loaded."""
-    try:  # (the family as uvicorn picks it: "localhost" is 127.0.0.1, not ::1)
-        sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+    try:  # (the family as uvicorn picks it: "localhost" is 127.0.0.1, not ::1; TCP named,
+        # or asyncio leaves Nagle on for its connections: a kept-alive connection's response
+        # then waited ~40 ms for the client's delayed ACK, each request)
+        sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
+                             socket.SOCK_STREAM, socket.IPPROTO_TCP)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind((host, port))
     except OSError as error:

@@ -18,9 +18,11 @@ from bson import ObjectId
 from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
+from pydantic import TypeAdapter, ValidationError
 
-from percept_memory.memory.types import Correction, timestamp_from_iso
+from percept_memory.memory.types import Correction
 from percept_memory.memory.types.curation import in_force, verdict
+from percept_memory.queries.model import Time
 
 from . import render
 
@@ -83,13 +85,14 @@ def parse_id(text: str, kind: str) -> ObjectId:
 def nanoseconds(text: str, name: str) -> int:
     """An ISO 8601 date or time (UTC unless it says otherwise), or nanoseconds since the epoch,
     as nanoseconds since the epoch."""
-    if text.isascii() and text.strip().isdigit() and len(text.strip()) <= 19:
-        return int(text)
     try:
-        return timestamp_from_iso(text)
-    except ValueError:
+        return TIME.validate_python(text)  # (the query model's reading: the API's)
+    except ValidationError:
         raise PageError(422, f"{name}: {text!r} is not a date or time such as "
                              "2024-05-06T08:30, or nanoseconds") from None
+
+
+TIME = TypeAdapter(Time)
 
 
 def nanoseconds_through(text: str, name: str) -> int:

@@ -19,6 +19,7 @@ from contextlib import suppress
 from bson import ObjectId
 from pymongo import MongoClient, UpdateOne, WriteConcern
 from pymongo.errors import (
+    ConfigurationError,
     DocumentTooLarge,
     OperationFailure,
     PyMongoError,
@@ -563,10 +564,27 @@ class MemoryStore(StoreBase):
                     raise
                 raise Unavailable(f"not stored: {reason(error)}") from None
 
-        if session is not None:
-            return session.with_transaction(attempt, write_concern=write_concern)
-        with self.client.start_session() as own:
-            return own.with_transaction(attempt, write_concern=write_concern)
+        def run():
+            if session is not None:
+                return session.with_transaction(attempt, write_concern=write_concern)
+            with self.client.start_session() as own:
+                return own.with_transaction(attempt, write_concern=write_concern)
+
+        try:
+            return run()
+        except ConfigurationError as error:
+            if "Sessions are not supported" not in str(error):
+                raise
+            self._forget_connections()
+            return run()
+
+    def _forget_connections(self) -> None:
+        """Close the pooled connections. One opened while mongod was starting (after a crash)
+        keeps, from its handshake, "no sessions" for as long as it lives, and pymongo keeps it
+        in the pool as that is not a network error: every transaction on it would fail even
+        once mongod is a primary again (pymongo's Connection.supports_sessions)."""
+        for server in self.client._topology._servers.values():
+            server.pool.reset_without_pause()
 
     def _catalogue(self, written: docs.Documents) -> None:
         """After a commit: record the stored types in `types` and the words new to this

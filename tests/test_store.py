@@ -406,6 +406,24 @@ def test_async_store_round_trip_and_append(mongo_uri, db_name, kitchen_rgb):
     assert counts["collections"]["scenes"] >= 1
 
 
+def test_async_writes_go_on_past_a_connection_handshaken_while_mongod_was_starting(
+        mongo_uri, db_name, kitchen_rgb):
+    """As the sync store's (test_pipeline.py): an enrichment job's append and the web app's
+    ingest are not refused for ever by a connection opened before mongod was a primary."""
+    scene = a_scene(kitchen_rgb, clusters=1, seed=6)
+
+    async def work(memory: AsyncMemoryStore):
+        await memory.scenes.find_one({})
+        for server in memory.client._topology._servers.values():
+            for connection in server.pool.conns:
+                connection.supports_sessions = False  # what its handshake said while starting
+        ids = await memory.put_scene(scene)
+        await memory.add_annotation(ids.cluster_ids[0], Text(text="Hohes C", source="LateOCR"))
+        return await memory.get_cluster(ids.cluster_ids[0])
+
+    assert run_async(mongo_uri, db_name, work).annotations[-1].text == "Hohes C"
+
+
 def test_concurrent_appends_to_one_cluster_all_land(mongo_uri, db_name, store):
     """Write conflicts between transactions are retried: none of the appends is lost."""
     scene = Scene(timestamp=next(_clock), clusters=[Cluster()])

@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from bson import ObjectId
 from pymongo import AsyncMongoClient
 from pymongo.errors import (
+    ConfigurationError,
     DocumentTooLarge,
     OperationFailure,
     PyMongoError,
@@ -28,7 +29,15 @@ from .errors import (
 from .naming import renamed
 from .schema import COUNTED_COLLECTIONS, INDEXES, RETIRED_INDEXES, catalogue_entry
 from .settings import Settings
-from .store import CLIENT_OPTIONS, HALVE, ClusterChange, StoreBase, halves, vocabulary_upserts
+from .store import (
+    CLIENT_OPTIONS,
+    HALVE,
+    ClusterChange,
+    StoreBase,
+    halves,
+    sessions_refused,
+    vocabulary_upserts,
+)
 from .types import Annotation, Cluster, Scene
 
 
@@ -240,11 +249,23 @@ class AsyncMemoryStore(StoreBase):
         await self.outbox.insert_many(written.outbox, session=session)
 
     async def _transaction(self, work, session=None):
-        """Run work(session) in a transaction, in a session of its own or the one given."""
-        if session is not None:
-            return await session.with_transaction(work)
-        async with self.client.start_session() as own:
-            return await own.with_transaction(work)
+        """Run work(session) in a transaction, in a session of its own or the one given (once
+        more on fresh connections when refused as "sessions not supported": StoreBase._pools)."""
+
+        async def run():
+            if session is not None:
+                return await session.with_transaction(work)
+            async with self.client.start_session() as own:
+                return await own.with_transaction(work)
+
+        try:
+            return await run()
+        except ConfigurationError as error:
+            if not sessions_refused(error):
+                raise
+            for pool in self._pools():
+                await pool.reset_without_pause()
+            return await run()
 
     async def _catalogue(self, written: docs.Documents) -> None:
         for name in self._not_yet_catalogued(written.type_names):

@@ -114,6 +114,11 @@ def halves(items: Sequence) -> tuple[Sequence, Sequence]:
     return items[:middle], items[middle:]
 
 
+def sessions_refused(error: ConfigurationError) -> bool:
+    """Whether a transaction failed on a connection without sessions: see StoreBase._pools."""
+    return "Sessions are not supported" in str(error)
+
+
 class StoreBase:
     """What the sync and async stores share: collections, settings, the catalogue memo."""
 
@@ -131,6 +136,14 @@ class StoreBase:
         self.gridfs_threshold = gridfs_threshold
         self._catalogued: set[str] = set()
         self._known_words: set[tuple[str, str]] = set()
+
+    def _pools(self) -> list:
+        """The client's connection pools, to be emptied when a transaction is refused as
+        "sessions not supported": a connection opened while mongod was starting (after a
+        crash) keeps that from its handshake for as long as it lives, and pymongo keeps it in
+        the pool, as it is no network error, though mongod is a primary again (pymongo's
+        Connection.supports_sessions). The kill -9 test once waited 180 s on one."""
+        return [server.pool for server in self.client._topology._servers.values()]
 
     def _not_yet_catalogued(self, type_names: set[str]) -> list[str]:
         new = sorted(type_names - self._catalogued)
@@ -573,18 +586,11 @@ class MemoryStore(StoreBase):
         try:
             return run()
         except ConfigurationError as error:
-            if "Sessions are not supported" not in str(error):
+            if not sessions_refused(error):
                 raise
-            self._forget_connections()
+            for pool in self._pools():
+                pool.reset_without_pause()
             return run()
-
-    def _forget_connections(self) -> None:
-        """Close the pooled connections. One opened while mongod was starting (after a crash)
-        keeps, from its handshake, "no sessions" for as long as it lives, and pymongo keeps it
-        in the pool as that is not a network error: every transaction on it would fail even
-        once mongod is a primary again (pymongo's Connection.supports_sessions)."""
-        for server in self.client._topology._servers.values():
-            server.pool.reset_without_pause()
 
     def _catalogue(self, written: docs.Documents) -> None:
         """After a commit: record the stored types in `types` and the words new to this

@@ -53,6 +53,7 @@ MALFORMED = [
     ("timestamp as text", "timestamp", "yesterday", "timestamp", "integer"),
     ("timestamp as digits in a string", "timestamp", "1500000000000000000", "timestamp",
      "not a string"),
+    ("timestamp as a float", "timestamp", 1.8e18, "timestamp", "lose the last digits"),
     ("negative timestamp", "timestamp", -5, "timestamp", "greater than or equal"),
     ("timestamp past int64", "timestamp", 2**64, "timestamp", "less than"),
     ("robot as a number", "robot", 7, "robot", "string"),

@@ -63,6 +63,9 @@ def _an_integer(value: Any) -> Any:
         raise ValueError("a timestamp is an integer, not true or false")
     if isinstance(value, str):  # (pydantic would read "15..." as the number)
         raise ValueError("a timestamp is an integer of nanoseconds, not a string")
+    if isinstance(value, float):  # a float holds 15-16 digits: 1.8e18 ns is 256 ns off
+        raise ValueError("a timestamp is an integer of nanoseconds, not a number with a "
+                         "point or an exponent (those lose the last digits)")
     return value
 
 

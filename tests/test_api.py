@@ -97,6 +97,7 @@ def test_bodies_over_the_limit_get_413(client, store):
 
 
 NDJSON = {"content-type": "application/x-ndjson"}
+JSON = {"content-type": "application/json"}
 
 
 def ndjson(*scenes) -> bytes:
@@ -166,6 +167,21 @@ def test_another_scene_at_a_stored_robot_and_time_is_refused_not_lost(client, st
     assert f"{STAMP + 70}" in error["message"]
     assert store.clusters.count_documents({}) == clusters
     assert not store.scenes.count_documents({"timestamp": STAMP + 71})
+
+
+def test_two_different_scenes_at_one_robot_and_time_in_one_body_are_refused(client, store):
+    """A JSON array or NDJSON body holding two scenes of one robot and time that differ was
+    answered 201 (created, then created false) and the second dropped: it is a 409, and
+    nothing of the body is written (bodies the worker processes make: test_json_workers)."""
+    clusters = store.clusters.count_documents({})
+    first, other = valid_scene(seed=3, timestamp=STAMP + 72), valid_scene(seed=4,
+                                                                          timestamp=STAMP + 72)
+    for body, headers in ((json.dumps([first, other]), JSON), (ndjson(first, other), NDJSON)):
+        answer = client.post("/api/scenes", content=body, headers=headers)
+        assert answer.status_code == 409, answer.text
+        assert "two different scenes at timestamp" in answer.json()["error"]["message"]
+    assert store.clusters.count_documents({}) == clusters
+    assert not store.scenes.count_documents({"timestamp": STAMP + 72})
 
 
 def test_ndjson_is_taken_by_post_scenes_only(client):

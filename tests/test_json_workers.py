@@ -149,3 +149,19 @@ def test_a_worker_that_died_costs_nothing_but_time(client, store, kitchen_rgb):
     assert all(s["created"] for s in answer.json()["scenes"])
     assert post(client, encoded(body_of(kitchen_rgb, 500))).status_code == 201  # afresh
     assert len(multiprocessing.active_children()) == 2
+
+
+@pytest.mark.parametrize("media_type", ["application/json", "application/x-ndjson"])
+@pytest.mark.parametrize("apart", [1, 19], ids=["one part", "two parts"])
+def test_two_different_scenes_at_one_robot_and_time_are_refused(client, store, kitchen_rgb,
+                                                                media_type, apart):
+    """Made in one worker's part or in two, a body with two different scenes of one robot
+    and time is a 409 naming them, and nothing of it is written (the second was dropped)."""
+    scenes = body_of(kitchen_rgb, 300 + apart + (100 if media_type.endswith("ndjson") else 0))
+    scenes[3 + apart]["timestamp"] = scenes[3]["timestamp"]
+    before = snapshot(store)
+    body = encoded(scenes) if media_type == "application/json" else as_ndjson(scenes)
+    answer = post(client, body, media_type)
+    assert answer.status_code == 409, answer.text
+    assert "two different scenes at timestamp" in answer.json()["error"]["message"]
+    assert snapshot(store) == before

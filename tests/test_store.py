@@ -200,6 +200,26 @@ def test_a_scene_is_identified_by_robot_and_time(store):
     assert store.put_scene(Scene(timestamp=scene.timestamp, robot="pr2")).created
 
 
+def test_two_different_scenes_at_one_robot_and_time_in_a_batch_are_refused(store):
+    """The second was acknowledged and dropped (a batch wrote a key once, unchecked): now the
+    batch is refused as a scene stored before would refuse it, whether the two came in one
+    chunk or in two, and nothing of it is written or given ids."""
+    t = next(_clock)
+
+    def scene(text: str) -> Scene:
+        return Scene(timestamp=t, robot="tiago", clusters=[Cluster(annotations=[
+            Text(text=text)])])
+    before = snapshot(store)
+    for put in (lambda a, b: store.put_scenes([a, b]),
+                lambda a, b: store.put_scene_chunks([[a], [b]])):
+        first, other = scene("milk"), scene("oat milk")
+        with pytest.raises(SceneExists, match="two different scenes at timestamp .* batch"):
+            put(first, other)
+        assert snapshot(store) == before
+        assert first.id is None and other.id is None and first.clusters[0].id is None
+    assert [r.created for r in store.put_scenes([scene("milk"), scene("milk")])] == [True, False]
+
+
 def test_a_batch_is_one_write_and_skips_what_is_stored(store, kitchen_rgb):
     stored_before = a_scene(kitchen_rgb, clusters=1, seed=11)
     store.put_scene(stored_before)

@@ -101,6 +101,7 @@ class AsyncMemoryStore(StoreBase):
             if self._refused(error, prepared) == HALVE:
                 return [result for half in halves(prepared.scenes) for result in
                         await self.commit_scenes(docs.prepared(half, {}, self.gridfs_threshold))]
+            self._no_repeats(prepared)
             stored = await self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None

@@ -27,7 +27,7 @@ from percept_memory.converters import (
 )
 
 from . import search_keys
-from .errors import NotFound
+from .errors import NotFound, SceneExists
 from .schema import BINARIES, GRIDFS_CHUNKS, GRIDFS_FILES, LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 from .types.curation import in_force
@@ -103,7 +103,10 @@ class PreparedWrite:
 
 
 def prepared(scenes: Sequence[Scene], stored: dict, threshold: int) -> PreparedWrite:
-    """Assign ids and encode the scenes not in `stored` (their key -> SceneIds)."""
+    """Assign ids and encode the scenes not in `stored` (their key -> SceneIds). Two
+    different scenes under one (robot, timestamp) refuse the write (SceneExists), as one
+    already stored does (store.py): the second would be lost."""
+    refuse_repeats(scenes)
     before = [id_snapshot(scene) for scene in scenes]
     fresh, results = partition(scenes, stored)
     return PreparedWrite(scenes, fresh, results, scene_documents(fresh, threshold), before)
@@ -327,6 +330,23 @@ def _without_ids(value: Any, top: bool = True) -> Any:
     if isinstance(value, list):
         return [_without_ids(v, False) for v in value]
     return value
+
+
+def refuse_repeats(scenes: Sequence[Scene]) -> None:
+    """SceneExists for a (robot, timestamp) that two scenes of the batch have with other
+    content (as `differing` compares: ids, search keys, summary and log aside); the same
+    scene twice is fine (written once)."""
+    first: dict[tuple[str, int], Scene] = {}
+    for scene in scenes:
+        key = scene_key(scene)
+        seen = first.setdefault(key, scene)
+        if seen is not scene and _model_content(seen) != _model_content(scene):
+            raise SceneExists(*key, in_batch=True)
+
+
+def _model_content(scene: Scene) -> tuple:
+    dump = scene.model_dump(mode="json", by_alias=True)
+    return _without_ids(dump), [_without_ids(cluster) for cluster in dump["clusters"]]
 
 
 def partition(scenes: Iterable[Scene], stored: dict) -> tuple[list[Scene], list[SceneIds]]:

@@ -48,11 +48,17 @@ class SceneExists(DuplicateId):
     """Another scene of the robot at the timestamp is stored: a scene is named by its robot
     and time, so the same one sent again is a no-op, and a different one would be lost."""
 
-    def __init__(self, robot: str, timestamp: int):
+    def __init__(self, robot: str, timestamp: int, in_batch: bool = False):
+        where = ("two different scenes at timestamp {} in this batch" if in_batch
+                 else "another scene stored at timestamp {}").format(timestamp)
         super().__init__(
-            f"not stored: robot {robot!r} has another scene stored at timestamp {timestamp} "
+            f"not stored: robot {robot!r} has {where} "
             "(a scene is named by its robot and time: the same scene sent again is stored "
             "once; a different one needs a time of its own)")
+        self.key = (robot, timestamp, in_batch)
+
+    def __reduce__(self):  # raised in an ingest worker process, re-raised in the server
+        return SceneExists, self.key
 
 
 class Unavailable(StoreError):

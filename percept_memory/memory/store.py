@@ -178,6 +178,16 @@ class StoreBase:
         return STORED
 
     @staticmethod
+    def _no_repeats(prepared: docs.PreparedWrite) -> None:
+        """Refuse the write (SceneExists) when two of its scenes differ under one robot and
+        time: chunks prepared apart (put_scene_chunks) are checked only as a whole, here."""
+        try:
+            docs.refuse_repeats(prepared.scenes)
+        except SceneExists:
+            docs.undo_ids(prepared, {docs.scene_key(scene): None for scene in prepared.scenes})
+            raise
+
+    @staticmethod
     def _same_scenes(prepared: docs.PreparedWrite, scene_docs: list, cluster_docs) -> None:
         """Refuse the write (SceneExists) when one of its scenes is not the scene stored under
         its robot and time: only the same scene sent again is no write."""
@@ -363,6 +373,7 @@ class MemoryStore(StoreBase):
             if self._refused(error, prepared) == HALVE:
                 return [result for half in halves(prepared.scenes) for result in
                         self.commit_scenes(docs.prepared(half, {}, self.gridfs_threshold))]
+            self._no_repeats(prepared)
             stored = self._stored(prepared.fresh)
             if not stored:
                 raise self._duplicate(error) from None

@@ -289,6 +289,25 @@ def test_exports_use_corrected_labels_say_so_and_skip_rejected_detections(memory
                for r in others)
 
 
+def test_an_object_relabelled_in_other_letters_is_one_class_in_an_object_export(memory):
+    """Relabelled "Teapot OF Grandma", the cluster's object is named "teapot of grandma"
+    (names are normalised): exported by object, its clusters were two classes that differ
+    in case only (two folders on a case-insensitive disk); now the object's name for all,
+    the corrected one still saying who corrected it."""
+    relabelled = a_classified_cluster(memory, skip=40)
+    made = curation.relabel(memory, relabelled.id, "Teapot OF Grandma", author="di")
+    settle(memory)
+    object_id = memory.get_cluster(relabelled.id).object_id
+    query = ExportQuery(format="jsonl", label="object", object=[object_id])
+    archive = zipfile.ZipFile(io.BytesIO(b"".join(Export(memory, query).zip_stream())))
+    records = [json.loads(line) for line in archive.read("provenance.jsonl").splitlines()]
+    assert len(records) > 1
+    assert {r["label"] for r in records} == {"teapot of grandma"}
+    mine = next(r for r in records if r["cluster_id"] == str(relabelled.id))
+    assert (mine["corrected"], mine["annotator"], mine["annotation_id"]) == (
+        True, "human:di", str(made.id))
+
+
 @pytest.mark.parametrize("call, message", [
     (lambda s, c: curation.relabel(s, c.id, "  ", author="ana"), "class_name"),
     (lambda s, c: curation.relabel(s, c.id, "mug", author=" "), "author"),

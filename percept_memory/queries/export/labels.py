@@ -4,7 +4,9 @@ classification, detection, ground_truth and text take the most confident annotat
 type (the first of equally confident ones); object takes the name the belief state gives the
 object the cluster is believed to be (named from the words of all its observations).
 A person's correction in force (memory/types/curation.py) overrides every source but text:
-its label is the corrected one, its annotator `human:<author>`, and it says it is `corrected`.
+its label is the corrected one (by object, in the letters of the object's name when the two
+are one name: names are stored normalised), its annotator `human:<author>`, and it says it is
+`corrected`.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 
 from bson import ObjectId
 
+from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.types import (
     Annotation,
     Classification,
@@ -49,10 +52,13 @@ ANNOTATIONS: dict[str, tuple[type[Annotation], str]] = {
 def label_of(cluster: Cluster, source: LabelSource,
              object_names: Mapping[ObjectId, str]) -> Label | None:
     """The cluster's label from `source`, or None when that source says nothing about it."""
+    name = object_names.get(cluster.object_id) if source == "object" else None
     if source != "text" and isinstance(decided := verdict(cluster.annotations), Relabel):
-        return Label(decided.class_name, f"{HUMAN}:{decided.author}", decided.id, True)
+        # by object, one object is one class: the correction its name, in the name's letters
+        same = name is not None and normal_label(name) == normal_label(decided.class_name)
+        return Label(name if same else decided.class_name, f"{HUMAN}:{decided.author}",
+                     decided.id, True)
     if source == "object":
-        name = object_names.get(cluster.object_id)
         return Label(name, BELIEF) if name else None
     kind, field = ANNOTATIONS[source]
     named = [a for a in cluster.annotations_of(kind) if getattr(a, field).strip()]

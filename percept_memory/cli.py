@@ -17,6 +17,7 @@ import gc
 import json
 import logging
 import os
+import signal
 import socket
 from pathlib import Path
 from typing import Any
@@ -863,6 +864,8 @@ def _export(settings: Settings, out: Path, **given: Any) -> None:
     from percept_memory.queries.export.run import Export, NothingExported
 
     query = model_from_options(ExportQuery, given)
+    # stopped by a scheduler (SIGTERM) as by Ctrl-C: what it was writing is removed
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     with MemoryStore.open(settings) as store:
         export = Export(store, query, settings)
         if not export.total:

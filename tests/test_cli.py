@@ -228,8 +228,8 @@ def test_export_to_a_missing_folder_or_over_a_file_is_one_line(mongo_uri, db_nam
     line = error_line(pmem("export", "jsonl", "--out", str(missing), **env))
     assert f"cannot write {missing}: No such file or directory" in line
     (tmp_path / "taken.zip").write_bytes(b"keep me")
-    assert "File exists" in error_line(pmem("export", "jsonl", "--out",
-                                            str(tmp_path / "taken.zip"), **env))
+    assert "exists: an export never writes over it" in error_line(
+        pmem("export", "jsonl", "--out", str(tmp_path / "taken.zip"), **env))
     assert (tmp_path / "taken.zip").read_bytes() == b"keep me"
     (tmp_path / "taken").write_text("keep me")
     assert "exists and is not an empty folder" in error_line(

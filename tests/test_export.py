@@ -9,8 +9,12 @@ real RoboSherlock PnP09 objects (ground-truth labels, VFH and CNN features, no p
 
 from __future__ import annotations
 
+import gc
 import io
 import json
+import os
+import subprocess
+import sys
 import zipfile
 from collections import Counter
 from pathlib import Path
@@ -370,6 +374,52 @@ def test_pmem_export_writes_a_zip_or_a_folder(memory, mongo_uri, db_name, tmp_pa
     assert len(list(folder.glob("*/*.png"))) == SYNTH_SCENES * SYNTH_CLUSTERS
     again = CliRunner().invoke(main, ["export", "imagefolder", "--out", str(folder)], env=env)
     assert again.exit_code == 1 and "not an empty folder" in again.output
+
+
+@pytest.mark.parametrize("name", ["stopped.zip", "stopped"])
+def test_an_export_stopped_midway_leaves_nothing_and_no_traceback(memory, tmp_path, name):
+    """Ctrl-C in the middle: nothing at the path nor beside it, and zipfile does not write
+    the end of the zip onto the closed file when collected (it printed a traceback)."""
+    unraisable = []
+    hook, sys.unraisablehook = sys.unraisablehook, unraisable.append
+    try:
+        export = Export(memory, ExportQuery(format="coco", images="crops"))
+
+        def stop(done):
+            raise KeyboardInterrupt
+        with pytest.raises(KeyboardInterrupt):
+            export.save(tmp_path / name, stop)
+        del export
+        gc.collect()
+    finally:
+        sys.unraisablehook = hook
+    assert not unraisable
+    assert not list(tmp_path.iterdir())
+
+
+def test_pmem_export_stopped_by_sigterm_leaves_nothing(memory, mongo_uri, db_name, tmp_path):
+    """A scheduler's SIGTERM killed the export where it was: a zip that was no zip, a folder
+    without its manifest, at the path asked for. Now it is stopped as by Ctrl-C."""
+    script = (
+        "import os, signal, sys\n"
+        "from percept_memory.cli import main\n"
+        "from percept_memory.queries.export import run\n"
+        "write = run.Export.write\n"
+        "def stopped(self, archive):\n"
+        "    for n, done in enumerate(write(self, archive)):\n"
+        "        if n == 2:\n"
+        "            os.kill(os.getpid(), signal.SIGTERM)\n"
+        "        yield done\n"
+        "run.Export.write = stopped\n"
+        "main(sys.argv[1:])\n")
+    for out in (tmp_path / "term.zip", tmp_path / "term"):
+        ran = subprocess.run([sys.executable, "-c", script, "export", "coco", "--images",
+                              "crops", "--out", str(out)], capture_output=True, text=True,
+                             env={**os.environ, "MONGODB_URI": mongo_uri, "PMEM_DB": db_name},
+                             timeout=120)
+        assert ran.returncode == 1, ran.stderr
+        assert "Traceback" not in ran.stderr and "Exception ignored" not in ran.stderr
+        assert not list(tmp_path.iterdir())
 
 
 def test_pmem_export_of_nothing_fails_and_says_why(memory, mongo_uri, db_name, tmp_path):

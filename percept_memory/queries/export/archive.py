@@ -61,14 +61,16 @@ class ZipArchive:
     def close(self) -> None:
         self.zip.close()
 
+    def abandon(self) -> None:
+        """An export that failed: no end of the zip is written (zipfile would, when collected,
+        onto a file closed by then: a traceback on Ctrl-C)."""
+        self.zip.fp = None
+
 
 class FolderArchive:
-    """Entries as files under a folder (which must be new or empty)."""
+    """Entries as files under a folder (Export.save: a new one)."""
 
     def __init__(self, root: Path):
-        if root.exists() and (not root.is_dir() or any(root.iterdir())):
-            raise FileExistsError(f"{root} exists and is not an empty folder: choose a new "
-                                  "path (or one ending in .zip for a zip file)")
         self.root = root
 
     def add(self, name: str, chunks: Iterable[bytes], size: int) -> None:
@@ -80,6 +82,9 @@ class FolderArchive:
 
     def close(self) -> None:
         self.root.mkdir(parents=True, exist_ok=True)  # an export of nothing is an empty folder
+
+    def abandon(self) -> None:
+        """(Export.save removes the folder.)"""
 
 
 class _EntriesOnDisk(list):

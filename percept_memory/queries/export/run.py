@@ -14,6 +14,7 @@ exported (`corrected`: how many of them with a person's label), how many were sk
 
 from __future__ import annotations
 
+import os
 import shutil
 from collections.abc import Callable, Iterator
 from itertools import chain
@@ -95,30 +96,34 @@ class Export:
         raise NothingExported(self.summary.why_empty())
 
     def save(self, path: Path, progress: Callable[[int], None] = lambda done: None) -> Summary:
-        """Write the export to a zip file (a path ending in .zip) or a new folder. An export
-        that fails, or holds nothing (NothingExported), leaves nothing at `path`: a script that
-        finds the file finds an export."""
-        made = False
+        """Write the export to a zip file (a path ending in .zip) or a new folder, never over
+        one. It is written beside `path` under a hidden name and given `path` once whole: an
+        export that fails, is stopped (even by SIGKILL) or holds nothing (NothingExported)
+        leaves nothing at `path`, so a script that finds the file finds an export."""
+        zipped = path.suffix.lower() == ".zip"
+        _refuse_taken(path, zipped)
+        partial = path.with_name(f".{path.name}.partial-{os.getpid()}")
         try:
-            if path.suffix.lower() == ".zip":
-                with path.open("xb") as file:
-                    made = True
+            if zipped:
+                with partial.open("xb") as file:
                     self._save(ZipArchive(file), progress)
             else:
-                archive = FolderArchive(path)  # (a path that exists already is refused)
-                made = True
-                self._save(archive, progress)
+                self._save(FolderArchive(partial), progress)
             if not self.summary.exported:
                 raise NothingExported(self.summary.why_empty())
+            _publish(partial, path, zipped)
         except BaseException:
-            if made:
-                _remove(path)
+            _remove(partial)
             raise
         return self.summary
 
     def _save(self, archive, progress: Callable[[int], None]) -> None:
-        for done in self.write(archive):
-            progress(done)
+        try:
+            for done in self.write(archive):
+                progress(done)
+        except BaseException:
+            archive.abandon()
+            raise
         archive.close()
 
     def _manifest(self, writer: Writer) -> dict:
@@ -132,6 +137,35 @@ class Export:
             "skipped": dict(sorted(self.summary.skipped.items())),
             "classes": list(writer.classes),
         }
+
+
+def _refuse_taken(path: Path, zipped: bool) -> None:
+    if not path.exists():
+        return
+    if zipped:
+        raise FileExistsError(f"{path} exists: an export never writes over it; choose a new "
+                              "path")
+    if not path.is_dir() or any(path.iterdir()):
+        raise FileExistsError(f"{path} exists and is not an empty folder: choose a new path "
+                              "(or one ending in .zip for a zip file)")
+
+
+def _publish(partial: Path, path: Path, zipped: bool) -> None:
+    """The whole export under its name, unless something took the name meanwhile."""
+    if not zipped:
+        _refuse_taken(path, zipped)
+        os.replace(partial, path)  # (onto an empty folder, or a new name)
+        return
+    try:
+        os.link(partial, path)  # FileExistsError when taken: never over a file
+    except FileExistsError:
+        _refuse_taken(path, zipped)
+        raise
+    except OSError:  # a file system without hard links
+        _refuse_taken(path, zipped)
+        os.replace(partial, path)
+        return
+    partial.unlink()
 
 
 def _remove(path: Path) -> None:

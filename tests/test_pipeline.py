@@ -264,6 +264,38 @@ def test_a_late_scene_rebuilds_its_map(empty, week):
     assert rebuilt(empty) == live
 
 
+def test_a_scene_waited_for_is_current_once_its_map_is_back_where_it_was(empty, week):
+    """A late scene goes through first of its map's rebuild: its waiter was told "current"
+    then, while the newer scenes were still to go through again (where-is answered from an
+    hour before). The server's way, a consolidator thread, and the scenes waited for at once
+    by another request."""
+    service = IngestService(empty)
+    service.pipeline.start()
+    try:
+        scenes = week.scenes[:70]
+        late = scenes.pop(3)
+        assert service.settled(service.ingest_batch(scenes), timeout=120)
+        newest = status(empty)["maps"][0]["consolidated_until_ns"]
+        assert service.settled([service.ingest(as_json(late))], timeout=120)
+        (row,) = status(empty)["maps"]
+        assert (row["consolidated_until_ns"], row["pending"], row["rebuilding"]) == (
+            newest, 0, False)
+    finally:
+        service.pipeline.stop()
+
+
+def test_a_scene_sent_again_before_it_was_consolidated_is_waited_for(empty, week):
+    """A robot's retry after a timeout, with wait: the scene is stored (created false) but
+    was still pending, and the answer came at once, its clusters in no belief yet."""
+    service = IngestService(empty)
+    first = service.ingest_batch(week.scenes[:8])
+    assert empty.db[EVENTS].count_documents({}) == 0
+    again = service.ingest(as_json(week.scenes[7]), wait=60)
+    assert not again.created and again.scene_id == first[7].scene_id
+    assert empty.db[EVENTS].count_documents({"cluster_id": {"$in": again.cluster_ids}}) == len(
+        again.cluster_ids)
+
+
 def test_the_belief_built_live_equals_the_rebuilt_one_with_lookups_in_between(empty, week):
     """Lookups append names while scenes keep coming; identity decides on the evidence the
     clusters arrived with, names sum every annotation: live == rebuilt, document for document."""

@@ -146,7 +146,7 @@ class IngestService:
     ) -> list[SceneIds]:
         """Validate a whole batch, then store it in one transaction; nothing is written when
         any item is invalid (the IngestError names every problem, by label or index). With
-        `wait` (seconds), also wait until the new scenes went through the pipeline (their
+        `wait` (seconds), also wait until the scenes went through the pipeline (their
         belief is current), at most that long: `settled` tells whether they did. `screened`:
         as for `validate`."""
         with self.pipeline.ingesting():
@@ -163,9 +163,10 @@ class IngestService:
         return results
 
     def settled(self, results: Sequence[SceneIds], timeout: float) -> bool:
-        """Wait until the new ones of these scenes went through the pipeline (True), at most
-        `timeout` seconds (False)."""
-        return self.pipeline.wait([r.scene_id for r in results if r.created], timeout)
+        """Wait until these scenes went through the pipeline and their maps' belief is current
+        (True), at most `timeout` seconds (False): those stored before too (a robot's retry may
+        come before the first was consolidated)."""
+        return self.pipeline.wait([r.scene_id for r in results], timeout)
 
     def ingest_stream(
         self, items: Iterable[tuple[str, Scene | Mapping]], context: Mapping | None = None

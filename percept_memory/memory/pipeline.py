@@ -144,9 +144,11 @@ class Pipeline:
         self._storing = 0  # batches being stored in this process now
         self._stored_at = -BUSY_S  # when the last one was (time.monotonic)
         self._waiting = 0  # callers of `wait` in this process now
-        # the scenes this pipeline's last batches committed (newest last, at most RECENT), for
-        # whoever waits for them here: told by the commit instead of asking the database
-        self._went_through: dict[ObjectId, None] = {}
+        # the scenes this pipeline's last batches committed, with their maps (newest last, at
+        # most RECENT), for whoever waits for them here: told by the commit instead of asking
+        # the database; and the maps it is rebuilding that are not back where they were
+        self._went_through: dict[ObjectId, str] = {}
+        self._catching_up: dict[str, tuple] = {}
         self._commits = threading.Condition()
 
     # --- running ---------------------------------------------------------------------------
@@ -186,29 +188,40 @@ class Pipeline:
         return sorted(self.outbox.distinct("map", {"_id": {"$in": list(scene_ids)},
                                                    "held": False}))
 
+    def _maps_catching_up(self, scene_ids: Sequence[ObjectId]) -> list[str]:
+        """The maps of these scenes being rebuilt, not back yet where they were before."""
+        rebuilding = self.maps.distinct("_id", {"catch_up": {"$ne": None}})
+        if not rebuilding:  # (the usual case: one look at a few documents)
+            return []
+        return sorted(self.store.db[SCENES].distinct("map", {"_id": {"$in": list(scene_ids)},
+                                                             "map": {"$in": rebuilding}}))
+
     def wait(self, scene_ids: Sequence[ObjectId], timeout: float) -> bool:
-        """Until these scenes went through (True) or the timeout passed (False). Works on them
-        here unless a background thread of this pipeline does."""
+        """Until these scenes went through and their maps' belief is current (True) or the
+        timeout passed (False): a late scene makes its map rebuild, and goes through first,
+        while the scenes after it are still to go through again. Works on them here unless a
+        background thread of this pipeline does."""
         deadline = time.monotonic() + timeout
         with self._ingest:  # someone waits for the belief: no pause for ingest to go quiet
             self._waiting += 1
             self._ingest.notify_all()
         self._wake.set()
         try:
-            if self._thread is not None and self._committed(scene_ids, deadline):
-                return True  # (told by this process's thread: no need to ask the database)
-            while maps := self._maps_pending(scene_ids):
+            while True:
+                if self._thread is not None and self._committed(scene_ids, deadline):
+                    # (told by this process's thread: no need to ask the database)
+                    return self._caught_up(scene_ids, deadline - time.monotonic())
+                maps = self._maps_pending(scene_ids) or self._maps_catching_up(scene_ids)
+                if not maps:
+                    return True
                 if time.monotonic() >= deadline:
                     return False
-                if self._thread is None and sum(self._work_on(name) for name in maps):
-                    if self._went_through_all(scene_ids):
+                if self._thread is None:
+                    if not sum(self._work_on(name) for name in maps):
+                        # another consolidator works on them: asked again after WAIT_POLL_S
+                        self._committed(scene_ids, deadline)
+                    elif self._went_through_all(scene_ids) and self._caught_up(scene_ids, 0):
                         return True
-                    continue
-                # another consolidator works on them: this pipeline's thread tells when it
-                # committed them; one elsewhere is asked after at most WAIT_POLL_S
-                if self._committed(scene_ids, deadline):
-                    return True
-            return True
         finally:
             with self._ingest:
                 self._waiting -= 1
@@ -219,6 +232,14 @@ class Pipeline:
         with self._commits:
             return self._commits.wait_for(lambda: self._went_through_all(scene_ids),
                                           min(WAIT_POLL_S, max(deadline - time.monotonic(), 0)))
+
+    def _caught_up(self, scene_ids: Sequence[ObjectId], timeout: float) -> bool:
+        """Whether the maps of these scenes, committed here, are not being rebuilt by this
+        process's pipeline, or are back where they were, within `timeout` seconds."""
+        with self._commits:
+            maps = {self._went_through[i] for i in scene_ids if i in self._went_through}
+            return self._commits.wait_for(lambda: not maps & self._catching_up.keys(),
+                                          max(timeout, 0))
 
     def _went_through_all(self, scene_ids: Sequence[ObjectId]) -> bool:
         """Whether this process committed all these scenes' stages (recently)."""
@@ -323,13 +344,17 @@ class Pipeline:
             if lease is None:
                 return 0
             token = lease["lease"]["token"]
+            catch_up = _watermark(lease.get("catch_up"))
+            if catch_up:  # (another consolidator began rebuilding it)
+                self._catch_up(map_name, catch_up)
             released = False
             try:
                 if lease.get("rebuild"):
-                    self._rebuild(map_name, token)
+                    catch_up = self._rebuild(map_name, token, _later(
+                        lease.get("consolidated"), catch_up))
                     lease["consolidated"] = None
                 count, released = self._consolidate(map_name, token, lease.get("consolidated"),
-                                                    session)
+                                                    catch_up, session)
                 return count
             except LeaseLost:
                 log.warning("pipeline: lost the lease of map %r to another consolidator",
@@ -340,28 +365,33 @@ class Pipeline:
                     self.leases.update_one({"_id": map_name, "lease.token": token},
                                            {"$set": {"lease": None}})
 
-    def _consolidate(self, map_name: str, token: ObjectId, watermark, session
-                     ) -> tuple[int, bool]:
+    def _consolidate(self, map_name: str, token: ObjectId, watermark, catch_up: tuple | None,
+                     session) -> tuple[int, bool]:
         """The map's due entries in order, a batch per transaction; a batch that fails is
         tried scene by scene, so only the failing scene waits and is counted against. The
         scenes that went through, and whether the lease went with the last batch: a batch that
-        leaves no entry due releases it in its own transaction (no round trip of its own)."""
+        leaves no entry due releases it in its own transaction (no round trip of its own).
+        `catch_up`: where a rebuild of the map must get back to (its belief is not current
+        until then)."""
         count, size = 0, self.batch
         while True:
             wanted = min(size, self._give_way())
             entries = self._next(map_name, wanted + 1)
             if not entries:
+                if catch_up:  # (what it was to get back to went away: held, or deleted)
+                    self._caught_up_with(map_name, token)
                 return count, False
             last = len(entries) <= wanted
             entries = entries[:wanted]
             head = (entries[0]["time"], entries[0]["_id"])
             if watermark is not None and head <= tuple(watermark):
                 log.info("pipeline: a late scene rebuilds map %r", map_name)
-                self._rebuild(map_name, token)
+                catch_up = self._rebuild(map_name, token, _later(watermark, catch_up))
                 watermark = None
                 continue
+            back = catch_up is not None and (entries[-1]["time"], entries[-1]["_id"]) >= catch_up
             try:
-                self._apply(map_name, token, entries, session, release=last)
+                self._apply(map_name, token, entries, session, release=last, caught_up=back)
             # not the scene's fault: try again later (a mongod restarting answers as a
             # deployment without sessions until it is a replica set's member again)
             except (LeaseLost, ConnectionFailure, ConfigurationError):
@@ -375,6 +405,8 @@ class Pipeline:
                     return count, False  # the map waits out the backoff, in order
                 continue
             count += len(entries)
+            if back:
+                catch_up = None
             if last:
                 return count, True
             size = self.batch
@@ -391,14 +423,17 @@ class Pipeline:
         return entries
 
     def _apply(self, map_name: str, token: ObjectId, entries: list[dict], session,
-               release: bool = False) -> None:
+               release: bool = False, caught_up: bool = False) -> None:
         """The stages on these entries and their removal, in one transaction that checks the
-        lease is still ours (and ends it, when `release`)."""
+        lease is still ours (and ends it, when `release`; and says a rebuild is back where it
+        was, when `caught_up`)."""
         ids = [entry["_id"] for entry in entries]
         last = entries[-1]
 
         def work(session):
             ending = {"lease": None} if release else {"lease.until": utc_now() + self.lease}
+            if caught_up:
+                ending["catch_up"] = None
             fenced = self.maps.update_one(
                 {"_id": map_name, "lease.token": token},
                 {"$set": {**ending, "consolidated": [last["time"], last["_id"]],
@@ -419,9 +454,11 @@ class Pipeline:
 
         self.store._transaction(work, session=session, write_concern=UNJOURNALED)
         with self._commits:
-            self._went_through.update(dict.fromkeys(ids))
+            self._went_through.update(dict.fromkeys(ids, map_name))
             for old in list(islice(self._went_through, max(len(self._went_through) - RECENT, 0))):
                 del self._went_through[old]
+            if caught_up:
+                self._catching_up.pop(map_name, None)
             self._commits.notify_all()
 
     def _failed(self, entry: dict, error: Exception) -> None:
@@ -468,11 +505,17 @@ class Pipeline:
         except OperationFailure as error:
             log.warning("pipeline: could not end an expired lease's session (%s)", error)
 
-    def _rebuild(self, map_name: str, token: ObjectId) -> None:
+    def _rebuild(self, map_name: str, token: ObjectId, until) -> tuple | None:
         """Forget the map's belief and queue every scene of the map for the belief stages
-        again. Idempotent: a consolidator that dies halfway leaves the request for the next."""
+        again. Idempotent: a consolidator that dies halfway leaves the request for the next.
+        `until`: where the belief was (a waiter is told it is current once it is back there),
+        kept with the map as `catch_up` and returned."""
+        until = _watermark(until)
         self.maps.update_one({"_id": map_name, "lease.token": token},
-                             {"$set": {"rebuild": True, "consolidated": None}})
+                             {"$set": {"rebuild": True, "consolidated": None,
+                                       "catch_up": list(until) if until else None}})
+        if until:
+            self._catch_up(map_name, until)
         belief = [stage.name for stage in self.stages if stage.belief]
         others = [stage.name for stage in self.stages if not stage.belief]
         for stage in self.stages:
@@ -492,6 +535,30 @@ class Pipeline:
         if not self.maps.update_one({"_id": map_name, "lease.token": token},
                                     {"$set": {"rebuild": False}}).matched_count:
             raise LeaseLost(map_name)
+        return until
+
+    def _catch_up(self, map_name: str, until: tuple) -> None:
+        with self._commits:
+            self._catching_up[map_name] = until
+
+    def _caught_up_with(self, map_name: str, token: ObjectId) -> None:
+        """A rebuild with nothing left to do is back where it can get."""
+        self.maps.update_one({"_id": map_name, "lease.token": token},
+                             {"$set": {"catch_up": None}})
+        with self._commits:
+            self._catching_up.pop(map_name, None)
+            self._commits.notify_all()
+
+
+def _watermark(value) -> tuple | None:
+    """A map's point in its scenes' order, (time, scene id), as stored ([time, id]) or None."""
+    return tuple(value) if value else None
+
+
+def _later(a, b) -> tuple | None:
+    """The later of two points (either may be None)."""
+    points = [p for p in (_watermark(a), _watermark(b)) if p]
+    return max(points) if points else None
 
 
 class StageFailed(Exception):
@@ -558,7 +625,8 @@ def status(store: MemoryStore, held_limit: int = 50) -> dict:
             "consolidated_until_ns": watermark[0] if watermark else None,
             "pending": counts.get(name, {}).get("pending", 0),
             "held": counts.get(name, {}).get("held", 0),
-            "rebuilding": bool(doc.get("rebuild")),
+            # asked for, or under way until it is back where the belief was
+            "rebuilding": bool(doc.get("rebuild") or doc.get("catch_up")),
             "consolidator": lease.get("owner"),
         })
     held = [{"scene_id": str(e["_id"]), "map": e["map"], "time": _iso(e["time"]),

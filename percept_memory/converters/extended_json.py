@@ -20,6 +20,7 @@ WRAPPERS = frozenset({
     "$oid", "$date", "$binary", "$uuid", "$numberDecimal", "$numberLong", "$numberInt",
     "$numberDouble", "$timestamp", "$regularExpression", "$minKey", "$maxKey"})
 """The first key of an Extended JSON value read back (see the module's docstring)."""
+INTEGER_BITS = {"$numberInt": 32, "$numberLong": 64}  # (json_util reads any size)
 MAX_DEPTH = 100  # MongoDB's: a document nested deeper is not stored
 
 
@@ -49,11 +50,14 @@ def extended_value(candidate: dict) -> tuple[bool, Any]:
         return False, None
     try:
         value = json_util.object_hook(dict(candidate))
-    except (BSONError, TypeError, ValueError, OverflowError, KeyError) as error:
+    except (BSONError, TypeError, ValueError, ArithmeticError, KeyError) as error:
         raise ValueError(f"not a MongoDB Extended JSON {first} value: {str(error)[:120]}"
                          ) from None
     if isinstance(value, dict):
         raise ValueError(f"not a MongoDB Extended JSON {first} value")
+    bits = INTEGER_BITS.get(first)
+    if bits and not -(2 ** (bits - 1)) <= value < 2 ** (bits - 1):
+        raise ValueError(f"not a MongoDB Extended JSON {first} value: beyond {bits} bits")
     return True, value
 
 

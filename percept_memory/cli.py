@@ -216,13 +216,17 @@ def ingest_with_progress(store, source: str, items, context: dict | None = None)
                 for ingested in service.ingest_stream(items, context):
                     summary.add(ingested)
                     progress.advance(task)
-            except IngestError as error:  # never a silent partial import
+            except IngestError as error:  # never a silent partial import (a batch is
+                # stored whole or not at all: the scenes of the bad one before it are not)
+                stored = summary.scenes_new + summary.scenes_existing
                 raise click.ClickException(
-                    f"{one_line(error)}. Nothing from there on was stored; stored before "
-                    f"it: {summary.scenes_new} new {_plural(summary.scenes_new, 'scene')} "
-                    "(importing again skips them)") from None
+                    f"{one_line(error)}. Stored: the first {stored} "
+                    f"{_plural(stored, 'scene')} read ({summary.scenes_new} new; importing "
+                    "again skips them), none after them") from None
     finally:
         pipeline.stop()
+    if not summary.scenes_new + summary.scenes_existing:
+        raise click.ClickException(f"{source}: no scene in it; nothing imported")
     drain_with_progress(store, pipeline)
     return summary
 

@@ -283,9 +283,21 @@ def test_an_import_stopped_by_a_bad_line_says_what_it_stored(mongo_uri, db_name,
     line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
                            PMEM_DB=db_name))
     assert "log.jsonl:41: timestamp: Field required" in line
-    assert "stored before it: 32 new scenes" in line  # the batches of 32 before line 41's
+    # the batches of 32 before line 41's: not "before line 41", lines 33-40 are not stored
+    assert "Stored: the first 32 scenes read (32 new; importing again skips them), none " \
+           "after them" in line
     stored = store.scenes.count_documents({"timestamp": {"$gte": 7_100, "$lt": 7_145}})
     assert stored == 32
+
+
+@pytest.mark.parametrize("files", [{"a.json": "[]"}, {"a.jsonl": "\n  \n"}])
+def test_an_import_of_no_scene_is_an_error(mongo_uri, db_name, tmp_path, files):
+    """It printed "0 new scenes, 0 stored before" and exited 0."""
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    line = error_line(pmem("import", "scene-log", str(tmp_path), MONGODB_URI=mongo_uri,
+                           PMEM_DB=db_name))
+    assert line == f"Error: {tmp_path.name}: no scene in it; nothing imported"
 
 
 def test_index_adds_lists_and_drops_a_field_index_and_says_when_it_did_nothing(

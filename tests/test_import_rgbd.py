@@ -338,6 +338,18 @@ def test_viewpoint_missing_a_key(tmp_path):
         list(read_samples(tmp_path))
 
 
+def test_a_viewpoint_of_no_rotation_is_one_line_naming_the_field(tmp_path):
+    kitchen_copy(tmp_path)
+    vp = tmp_path / f"viewpoint_{STAMP}.vp"
+    vp.write_text(re.sub(r"(?m)^([xyzw])=.*$", r"\1=0", vp.read_text().split("[frame]")[0])
+                  + "[frame]" + vp.read_text().split("[frame]")[1])
+    with pytest.raises(SampleError) as raised:
+        list(read_samples(tmp_path))
+    message = str(raised.value)
+    assert f"viewpoint_{STAMP}.vp: bad value: rotation: " in message
+    assert "\n" not in message and "errors.pydantic.dev" not in message
+
+
 def test_ascii_pcd_reads_like_binary(tmp_path):
     binary, viewpoint = read_pcd(LOW_NOISE / "cloud.pcd")
     head = binary[:50]

@@ -49,6 +49,7 @@ import imagehash
 import numpy as np
 from numpy.lib.recfunctions import repack_fields
 from PIL import Image as PILImage
+from pydantic import ValidationError
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
@@ -271,6 +272,10 @@ def _read_viewpoint(path: Path) -> Transform:
         return Transform(translation=translation, rotation=rotation,
                          frame=parser["frame"]["frame"],
                          child_frame=parser["frame"]["child_frame"], stamp=stamp)
+    except ValidationError as error:  # (a ValueError: pydantic's text is lines and a link)
+        raise SampleError(path, "bad value: " + "; ".join(
+            f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
+            for e in error.errors(include_url=False))) from None
     except ValueError as error:
         raise SampleError(path, f"bad value: {error}") from None
 

@@ -345,8 +345,7 @@ class Pipeline:
                 return 0
             token = lease["lease"]["token"]
             catch_up = _watermark(lease.get("catch_up"))
-            if catch_up:  # (another consolidator began rebuilding it)
-                self._catch_up(map_name, catch_up)
+            self._catch_up(map_name, catch_up)  # (another consolidator may have begun it)
             released = False
             try:
                 if lease.get("rebuild"):
@@ -378,7 +377,9 @@ class Pipeline:
             wanted = min(size, self._give_way())
             entries = self._next(map_name, wanted + 1)
             if not entries:
-                if catch_up:  # (what it was to get back to went away: held, or deleted)
+                if catch_up and not self.outbox.find_one({"map": map_name, "held": False},
+                                                         {"_id": 1}):
+                    # (what it was to get back to went away: held, or deleted)
                     self._caught_up_with(map_name, token)
                 return count, False
             last = len(entries) <= wanted
@@ -459,7 +460,7 @@ class Pipeline:
                 del self._went_through[old]
             if caught_up:
                 self._catching_up.pop(map_name, None)
-            self._commits.notify_all()
+            self._commits.notify_all()  # (the waiters of these scenes and of catching up)
 
     def _failed(self, entry: dict, error: Exception) -> None:
         attempts = entry["attempts"] + 1
@@ -514,8 +515,7 @@ class Pipeline:
         self.maps.update_one({"_id": map_name, "lease.token": token},
                              {"$set": {"rebuild": True, "consolidated": None,
                                        "catch_up": list(until) if until else None}})
-        if until:
-            self._catch_up(map_name, until)
+        self._catch_up(map_name, until)
         belief = [stage.name for stage in self.stages if stage.belief]
         others = [stage.name for stage in self.stages if not stage.belief]
         for stage in self.stages:
@@ -537,17 +537,19 @@ class Pipeline:
             raise LeaseLost(map_name)
         return until
 
-    def _catch_up(self, map_name: str, until: tuple) -> None:
+    def _catch_up(self, map_name: str, until: tuple | None) -> None:
+        """Note in this process where the map's rebuild is to get back to (None: nowhere)."""
         with self._commits:
-            self._catching_up[map_name] = until
+            if until:
+                self._catching_up[map_name] = until
+            elif self._catching_up.pop(map_name, None):
+                self._commits.notify_all()
 
     def _caught_up_with(self, map_name: str, token: ObjectId) -> None:
         """A rebuild with nothing left to do is back where it can get."""
         self.maps.update_one({"_id": map_name, "lease.token": token},
                              {"$set": {"catch_up": None}})
-        with self._commits:
-            self._catching_up.pop(map_name, None)
-            self._commits.notify_all()
+        self._catch_up(map_name, None)
 
 
 def _watermark(value) -> tuple | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -213,6 +214,17 @@ def test_scene_log_problems_name_file_and_line(store, tmp_path):
         list(read_scene_log(tmp_path / "empty"))
     with pytest.raises(IngestError, match="no such directory"):
         list(read_scene_log(tmp_path / "missing"))
+
+
+def test_scene_log_reads_any_case_and_warns_of_subfolders(tmp_path, caplog):
+    """RECORDING.JSON was skipped, and scenes in subfolders too, without a word."""
+    (tmp_path / "RECORDING.JSON").write_text(json.dumps(valid_scene(seed=31,
+                                                                    timestamp=STAMP + 310)))
+    (tmp_path / "day2").mkdir()
+    (tmp_path / "day2" / "b.jsonl").write_text(json.dumps(valid_scene(seed=32)) + "\n")
+    with caplog.at_level(logging.WARNING):
+        assert [where for where, _ in read_scene_log(tmp_path)] == ["RECORDING.JSON"]
+    assert "not read: 1 scene file(s) in subfolders, such as day2/b.jsonl" in caplog.text
 
 
 def test_validation_of_a_scene_object_passes_through():

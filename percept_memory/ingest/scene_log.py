@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import base64
 import json
+import logging
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,9 @@ from .json_input import loads
 from .service import IngestError
 
 IMAGES = "images"
+SCENE_FILES = (".json", ".jsonl")  # in any case: RECORDING.JSON is one too
+
+log = logging.getLogger(__name__)
 
 
 def _problem(where: str, message: str) -> IngestError:
@@ -31,12 +35,17 @@ def read_scene_log(folder: Path) -> Iterator[tuple[str, Any]]:
     folder = Path(folder)
     if not folder.is_dir():
         raise _problem(str(folder), "is not a scene-log folder (no such directory)")
-    files = sorted(p for p in folder.iterdir() if p.suffix in (".json", ".jsonl"))
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in SCENE_FILES)
+    nested = [p for p in folder.rglob("*")
+              if p.parent != folder and p.suffix.lower() in SCENE_FILES]
+    if nested:  # (their relative image paths would be the folder's: each is a log of its own)
+        log.warning("not read: %d scene file(s) in subfolders, such as %s: import each "
+                    "folder on its own", len(nested), nested[0].relative_to(folder))
     if not files:
         raise _problem(str(folder), "holds no .json or .jsonl scene files")
     for path in files:
         text = _text(path)
-        if path.suffix == ".jsonl":
+        if path.suffix.lower() == ".jsonl":
             for number, line in enumerate(text.splitlines(), start=1):
                 if line.strip():
                     yield f"{path.name}:{number}", _parse(line, f"{path.name}:{number}")

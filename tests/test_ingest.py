@@ -79,6 +79,8 @@ MALFORMED = [
      "number"),
     ("confidence above 1", f"{CLASSIFICATION}.confidence", 1.5,
      f"{CLASSIFICATION}.confidence", "less than or equal to 1"),
+    ("NaN confidence", f"{CLASSIFICATION}.confidence", float("nan"),
+     f"{CLASSIFICATION}.confidence", "finite number"),
     ("negative confidence", f"{CLASSIFICATION}.confidence", -0.1,
      f"{CLASSIFICATION}.confidence", "greater than or equal to 0"),
     ("negative box", f"{ROI}.box.0", -3, f"{ROI}.box.0", "greater than or equal to 0"),

@@ -28,7 +28,7 @@ from .appearance import sqrt_distribution, unit
 from .base import Id, Identifiable, Model, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
-Probability = Annotated[float, Field(ge=0.0, le=1.0)]
+Probability = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
 Distance = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]  # metres, >= 0
 
 

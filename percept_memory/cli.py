@@ -454,7 +454,8 @@ def demo_sources(days: int):
         yield f"samples/{folder.name}", rgbd.read_samples(folder)
     for folder in sorted((data / "mongodump").iterdir()):
         yield f"mongodump/{folder.name}", robosherlock.read_dump(folder)
-    yield f"kitchen week ({days} days)", kitchen_week.generate(days=days).scenes
+    if days:
+        yield f"kitchen week ({days} days)", kitchen_week.generate(days=days).scenes
 
 
 def shared_data_dir() -> Path:

@@ -126,6 +126,8 @@ def test_demo_loads_real_data_and_the_kitchen_week_once(mongo_uri, db_name):
             scenes = client[env["PMEM_DB"]]["scenes"]
             keys = {(d["robot"], d["timestamp"]) for d in scenes.find({}, {"_id": 0})}
             assert scenes.count_documents({}) == len(keys)
+        none = pmem("demo", "--no-serve", "--days", "0", **env)  # (0: no week, as it says)
+        assert none.exit_code == 0 and "kitchen week" not in none.stdout, none.output
     finally:
         with MongoClient(mongo_uri) as client:
             client.drop_database(env["PMEM_DB"])

@@ -322,6 +322,22 @@ def test_backend_failures_are_retried_then_fail_keeping_the_error(fresh, mongo_u
     assert len(server.requests) == requests
 
 
+def test_a_job_done_on_a_later_attempt_shows_no_error(fresh, mongo_uri, db_name):
+    """Done after a failed attempt, it still showed that attempt's error beside its outcome
+    (pmem jobs, GET /api/jobs): a done job reads as a failure."""
+    server = LookupServer([(503, {"error": "overloaded"}, 0)] * 2 + [(200, ANSWER, 0)])
+    try:
+        ingest(fresh, [scene_with_crops([cut(kitchen_frame(), MUESLI_BOX)], 1)])
+        settings = settings_for(mongo_uri, db_name, lookup_url=server.url, job_max_attempts=3,
+                                lookup_retries=1)
+        counts = asyncio.run(until_idle(settings, backend="http"))
+    finally:
+        server.close()
+    job = fresh.db[JOBS].find_one()
+    assert (job["state"], job["attempts"], job["error"]) == ("done", 2, None)
+    assert counts["retried"] == 1 and counts["done"] == 1
+
+
 # --- crash and take-over --------------------------------------------------------------------------
 
 

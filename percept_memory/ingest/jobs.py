@@ -157,7 +157,8 @@ class JobQueue:
         return result.matched_count == 1
 
     async def complete(self, job: Job, outcome: dict[str, Any]) -> bool:
-        return await self._finish(job, "done", outcome=outcome)
+        """Done: an earlier attempt's error goes (a done job showing one reads as failed)."""
+        return await self._finish(job, "done", outcome=outcome, error=None)
 
     async def retry_or_fail(self, job: Job, error: str, *, permanent: bool = False) -> State:
         """Queue the job again after its backoff, or mark it failed when it was the last

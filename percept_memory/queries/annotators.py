@@ -167,9 +167,11 @@ def _compared(clusters: list[tuple[Cluster, int]], annotator: str,
 
 def _pairs(verdicts: Cluster, annotator: str, reference: str) -> set[tuple]:
     """The (annotator's class, reference's class) pairs of a cluster, None for one that said
-    nothing; none if neither did."""
+    nothing; none if neither did, nor if people did not correct it: people correct a few
+    clusters, so one they left alone is no disagreement with them (the ground truth, where
+    there is any, labels every object: a class where it has none is a false detection)."""
     said, expected = verdicts.get(annotator), verdicts.get(reference)
-    if not said and not expected:
+    if not expected and (not said or reference == PEOPLE):
         return set()
     return set(product(sorted(said or [None]), sorted(expected or [None])))
 

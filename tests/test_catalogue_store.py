@@ -7,6 +7,7 @@ import json
 from collections import Counter
 
 import pytest
+from bson import ObjectId
 
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
@@ -65,6 +66,29 @@ def test_the_home_s_objects_are_entries_of_one_kind_of_object_each(store, week):
         assert entry["now"] is not None and entry["names"] and entry["times_seen"] >= 1
     assert not mixed
     assert len({e["entry"] for e in found}) == len(found)
+
+
+def test_an_object_in_several_entries_is_not_counted_whole_in_each(store, week):
+    """The demo's plates: one belief object's models in three entries made each entry say it
+    was seen as often as the object (1,111 sightings for 982 clusters); its sightings are
+    shared among them now."""
+    found = catalogue.entries(store, limit=1000)
+    seen = {doc["_id"]: doc["seen"] for doc in store.db["catalogue_tracks"].find()}
+    assert sum(e["times_seen"] for e in found) <= sum(seen.values())
+    # one plate seen 126 times, its models in three entries (5, 1 and 1 of its 7)
+    plate, entries = ObjectId(), [ObjectId() for _ in range(3)]
+    models = [(entries[0], 5), (entries[1], 1), (entries[2], 1)]
+    try:
+        store.db["objects"].insert_one({"_id": plate, "map": "plates", "name": "plate"})
+        store.db["catalogue_tracks"].insert_one({"_id": plate, "map": "plates", "seen": 126})
+        store.db["catalogue"].insert_many([
+            {"map": "plates", "object_id": plate, "elements": [], "length": 10, "edges": [],
+             "entry": entry} for entry, n in models for _ in range(n)])
+        shown = {e["entry"]: e["times_seen"] for e in catalogue.entries(store, "plates")}
+        assert shown == {str(entries[0]): 90, str(entries[1]): 18, str(entries[2]): 18}
+    finally:
+        for name in ("objects", "catalogue_tracks", "catalogue"):
+            store.db[name].delete_many({"map": "plates"})
 
 
 def test_an_observation_is_recognised_as_the_entry_holding_its_views(store, week):

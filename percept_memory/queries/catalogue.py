@@ -39,18 +39,46 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
         {"_id": {"$in": object_ids}}, OBJECT_FIELDS)}
     seen = {doc["_id"]: doc["seen"] for doc in store.db[CATALOGUE_TRACKS].find(
         {"_id": {"$in": object_ids}}, {"seen": 1})}
-    out = [_entry(group, objects, seen) for group in groups]
+    sightings = _sightings(groups, seen)
+    out = [_entry(group, objects, sightings[_key(group)]) for group in groups]
     out.sort(key=lambda e: (-e["times_seen"], e["entry"]))
     return out[:limit]
 
 
-def _entry(group: dict, objects: dict, seen: dict) -> dict:
+def _key(group: dict) -> tuple:
+    return group["_id"]["map"], group["_id"]["entry"]
+
+
+def _sightings(groups: list[dict], seen: dict) -> Counter:
+    """How many sightings each entry stands for: an object's, shared by the entries holding
+    its models in proportion to how many each holds (whole numbers, adding up to its own:
+    the largest remainders round up). Counted whole in each, an object the catalogue holds
+    in three entries was seen three times as often as it was."""
+    holding: dict = {}  # object -> entry -> its models there
+    for group in groups:
+        for model in group["models"]:
+            if model["object"] in seen:
+                counts = holding.setdefault(model["object"], Counter())
+                counts[_key(group)] += 1
+    out: Counter = Counter()
+    for object_id, counts in holding.items():
+        models = sum(counts.values())
+        exact = {key: seen[object_id] * n / models for key, n in counts.items()}
+        given = {key: int(share) for key, share in exact.items()}
+        left = seen[object_id] - sum(given.values())
+        for key in sorted(exact, key=lambda k: (given[k] - exact[k], str(k)))[:left]:
+            given[key] += 1
+        out.update(given)
+    return out
+
+
+def _entry(group: dict, objects: dict, sightings: int) -> dict:
     models = sorted(group["models"], key=lambda m: (-m["length"], m["id"]))
-    tracks = list(dict.fromkeys(m["object"] for m in models if m["object"] in objects))
+    owners = list(dict.fromkeys(m["object"] for m in models if m["object"] in objects))
     names: Counter = Counter()
-    for object_id in tracks:
+    for object_id in owners:
         names.update(objects[object_id].get("names") or [objects[object_id].get("name")])
-    last = max(tracks, key=lambda o: objects[o].get("last_seen") or 0, default=None)
+    last = max(owners, key=lambda o: objects[o].get("last_seen") or 0, default=None)
     now = None if last is None else {"object_id": str(last), **{
         k: objects[last].get(k) for k in ("name", "state", "region", "position", "last_seen")}}
     links = [{"a": str(m["id"]), "b": str(other), "weight": round(weight, 4)}
@@ -60,8 +88,8 @@ def _entry(group: dict, objects: dict, seen: dict) -> dict:
             "graph": {"models": [{"model": str(m["id"]), "length": m["length"]} for m in models],
                       "links": links},
             "names": [name for name, _ in names.most_common() if name],
-            "times_seen": sum(seen.get(o, 0) for o in tracks),
-            "objects": [str(o) for o in tracks], "now": now}
+            "times_seen": sightings,
+            "objects": [str(o) for o in owners], "now": now}
 
 
 def seen_before(store: MemoryStore, cluster_id: ObjectId, limit: int = 5,

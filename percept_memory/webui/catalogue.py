@@ -74,7 +74,8 @@ def _api(store: MemoryStore) -> APIRouter:
     ) -> dict[str, Any]:
         """Each entry is an object learnt from its views, the most seen first: `views` (the
         clusters its models began with, the longest look first), `names`, the belief `objects`
-        whose tracks it gathers, `times_seen` (how often they were seen), where it is `now`
+        whose tracks it gathers, `times_seen` (how often they were seen, shared with the other
+        entries holding their models), where it is `now`
         (the one seen last) and its `graph`: its partial models and the similarity links
         between them."""
         return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}

@@ -86,6 +86,8 @@ def test_an_object_in_several_entries_is_not_counted_whole_in_each(store, week):
              "entry": entry} for entry, n in models for _ in range(n)])
         shown = {e["entry"]: e["times_seen"] for e in catalogue.entries(store, "plates")}
         assert shown == {str(entries[0]): 90, str(entries[1]): 18, str(entries[2]): 18}
+        alone = catalogue.entries(store, "plates", only=[entries[1]])  # (seen-before's)
+        assert [e["times_seen"] for e in alone] == [18]
     finally:
         for name in ("objects", "catalogue_tracks", "catalogue"):
             store.db[name].delete_many({"map": "plates"})

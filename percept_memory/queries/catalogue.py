@@ -39,33 +39,33 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
         {"_id": {"$in": object_ids}}, OBJECT_FIELDS)}
     seen = {doc["_id"]: doc["seen"] for doc in store.db[CATALOGUE_TRACKS].find(
         {"_id": {"$in": object_ids}}, {"seen": 1})}
-    sightings = _sightings(groups, seen)
-    out = [_entry(group, objects, sightings[_key(group)]) for group in groups]
+    sightings = _sightings(store, object_ids, seen)
+    out = [_entry(group, objects, sightings[_key(group["_id"])]) for group in groups]
     out.sort(key=lambda e: (-e["times_seen"], e["entry"]))
     return out[:limit]
 
 
-def _key(group: dict) -> tuple:
-    return group["_id"]["map"], group["_id"]["entry"]
+def _key(entry: dict) -> tuple:
+    return entry["map"], entry["entry"]
 
 
-def _sightings(groups: list[dict], seen: dict) -> Counter:
+def _sightings(store: MemoryStore, object_ids: list, seen: dict) -> Counter:
     """How many sightings each entry stands for: an object's, shared by the entries holding
-    its models in proportion to how many each holds (whole numbers, adding up to its own:
-    the largest remainders round up). Counted whole in each, an object the catalogue holds
-    in three entries was seen three times as often as it was."""
+    its models (all of them, listed or not) in proportion to how many each holds (whole
+    numbers, adding up to its own: the largest remainders round up). Counted whole in each,
+    an object the catalogue holds in three entries was seen three times as often as it was."""
     holding: dict = {}  # object -> entry -> its models there
-    for group in groups:
-        for model in group["models"]:
-            if model["object"] in seen:
-                counts = holding.setdefault(model["object"], Counter())
-                counts[_key(group)] += 1
+    for row in store.db[CATALOGUE].aggregate([
+            {"$match": {"object_id": {"$in": object_ids}}},
+            {"$group": {"_id": {"object": "$object_id", "map": "$map", "entry": "$entry"},
+                        "models": {"$sum": 1}}}]):
+        holding.setdefault(row["_id"]["object"], Counter())[_key(row["_id"])] = row["models"]
     out: Counter = Counter()
     for object_id, counts in holding.items():
         models = sum(counts.values())
-        exact = {key: seen[object_id] * n / models for key, n in counts.items()}
+        exact = {key: seen.get(object_id, 0) * n / models for key, n in counts.items()}
         given = {key: int(share) for key, share in exact.items()}
-        left = seen[object_id] - sum(given.values())
+        left = seen.get(object_id, 0) - sum(given.values())
         for key in sorted(exact, key=lambda k: (given[k] - exact[k], str(k)))[:left]:
             given[key] += 1
         out.update(given)

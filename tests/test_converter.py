@@ -262,6 +262,19 @@ def test_a_new_type_needs_no_converter_code():
     assert round_trip(value) == value
 
 
+def test_containers_annotated_without_their_items_store_too():
+    """`props: dict` was an IndexError deep in the codec (it read dict[Any]'s second type)."""
+    @register_type("test.annotation.Bare")
+    class Bare(Model):
+        props: dict = {}
+        tags: list = []
+        pair: tuple = ()
+        kinds: set = set()
+
+    value = Bare(props={"a": 1, "b": [2.5, "c"]}, tags=[1, "x"], pair=(1, "y"), kinds={"k"})
+    assert round_trip(value) == value
+
+
 def test_unregistered_class_is_refused_clearly():
     class Loose(Text):
         pass

@@ -267,6 +267,10 @@ def _codec_for(annotation: Any) -> FieldCodec:
         return _build_codec(annotation)
 
 
+BARE = {list: list[Any], tuple: tuple[Any, ...], set: set[Any], dict: dict[str, Any]}
+"""A container annotated without its items' types, as the annotated one it stands for."""
+
+
 def _build_codec(annotation: Any) -> FieldCodec:
     origin = typing.get_origin(annotation)
     args = typing.get_args(annotation)
@@ -286,8 +290,8 @@ def _build_codec(annotation: Any) -> FieldCodec:
         return _tuple_codec(args)
     if origin in (dict, Mapping):
         return _dict_codec(_codec_for(args[1]) if args else _codec_for(Any))
-    if annotation in (list, tuple, set, dict):
-        return _codec_for(annotation[Any] if annotation is not tuple else tuple[Any, ...])
+    if annotation in BARE:
+        return _codec_for(BARE[annotation])
     if isinstance(annotation, type):
         return _class_codec(annotation)
     raise ConversionError(f"cannot store values annotated {annotation!r}")

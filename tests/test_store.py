@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import re
 
 import bson
 import numpy as np
@@ -442,6 +443,43 @@ def test_async_writes_go_on_past_a_connection_handshaken_while_mongod_was_starti
         return await memory.get_cluster(ids.cluster_ids[0])
 
     assert run_async(mongo_uri, db_name, work).annotations[-1].text == "Hohes C"
+
+
+def test_a_wrong_argument_is_a_type_error_naming_it_and_writes_nothing(store, mongo_uri,
+                                                                       db_name):
+    """A dict where a Scene belongs, a Scene appended as an annotation, a str id: they were
+    AttributeErrors from deep inside, a Scene stored inside a cluster's annotations, and
+    "no cluster <the id of one that exists>"."""
+    ids = store.put_scene(Scene(timestamp=next(_clock), robot="args", clusters=[Cluster()]))
+    cluster = ids.cluster_ids[0]
+    before = snapshot(store)
+    for call, words in [
+            (lambda: store.put_scene({"timestamp": 1}), "scenes: expected Scene, got dict"),
+            (lambda: store.put_scene(None), "scenes: expected Scene, got NoneType"),
+            (lambda: store.add_annotation(cluster, Scene(timestamp=1)),
+             "annotations: expected Annotation, got Scene"),
+            (lambda: store.add_annotation(cluster, Cluster()),
+             "annotations: expected Annotation, got Cluster"),
+            (lambda: store.add_annotation(cluster, {"_type": "pm.annotation.Text"}),
+             "annotations: expected Annotation, got dict"),
+            (lambda: store.update_annotation(cluster, Cluster()),
+             "annotation: expected Annotation, got Cluster"),
+            (lambda: store.update_cluster("x"), "cluster: expected Cluster, got str"),
+            (lambda: store.get_scene("junk"), "scene_id: expected an ObjectId or its 24"),
+            (lambda: store.put_blob("hello"), "data: expected bytes or bytearray or memoryview")]:
+        with pytest.raises(TypeError, match=re.escape(words)):
+            call()
+    assert snapshot(store) == before
+    added = store.add_annotation(str(cluster), Text(text="x"))  # its hex digits: the cluster
+    assert store.get_cluster(str(cluster)).annotations[-1].id == added
+
+    async def appended(memory: AsyncMemoryStore):
+        with pytest.raises(TypeError, match="expected Annotation, got Scene"):
+            await memory.add_annotation(cluster, Scene(timestamp=1))
+        return await memory.add_annotation(str(cluster), Text(text="y"))
+
+    assert run_async(mongo_uri, db_name, appended) in [
+        a.id for a in store.get_cluster(cluster).annotations]
 
 
 def test_concurrent_appends_to_one_cluster_all_land(mongo_uri, db_name, store):

@@ -126,6 +126,7 @@ class AsyncMemoryStore(StoreBase):
         return docs.stored_by_key(found, await clusters.to_list())
 
     async def get_scene(self, scene_id: ObjectId) -> Scene:
+        scene_id = docs.as_id(scene_id, "scene_id")
         doc = await self.scenes.find_one({"_id": scene_id})
         if doc is None:
             raise NotFound("scene", scene_id)
@@ -133,6 +134,7 @@ class AsyncMemoryStore(StoreBase):
         return docs.decode_scene(doc, cluster_docs, await self._blobs([doc, *cluster_docs]))
 
     async def get_cluster(self, cluster_id: ObjectId) -> Cluster:
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
         doc = await self.clusters.find_one({"_id": cluster_id})
         if doc is None:
             raise NotFound("cluster", cluster_id)
@@ -144,6 +146,7 @@ class AsyncMemoryStore(StoreBase):
         return {doc["_id"]: docs.decode_cluster(doc, blobs) for doc in found}
 
     async def update_cluster(self, cluster: Cluster) -> None:
+        docs.checked([cluster], Cluster, "cluster")
         if cluster.id is None:
             raise StoreError("the cluster has no id: store it as part of a scene first")
         await self._rewrite_cluster(cluster.id, lambda stored: cluster)
@@ -157,12 +160,16 @@ class AsyncMemoryStore(StoreBase):
     ) -> list[ObjectId]:
         """See MemoryStore.add_annotations: one transaction, idempotent by annotation id; in
         `session`, when given (an enrichment job's: jobs.py)."""
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
+        docs.checked(annotations, Annotation, "annotations")
         annotation_ids = [annotation.ensure_id() for annotation in annotations]
         await self._rewrite_cluster(
             cluster_id, lambda cluster: docs.appended(cluster, annotations), session)
         return annotation_ids
 
     async def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
+        docs.checked([annotation], Annotation, "annotation")
         await self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
 
     async def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange,

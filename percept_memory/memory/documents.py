@@ -102,10 +102,36 @@ class PreparedWrite:
     before: list[IdSnapshot]
 
 
+# --- what the stores' callers hand in: a mistake is a TypeError naming it, not one from deep
+# inside (a dict where a Scene belongs had no attribute `id`)
+
+
+def as_id(value: Any, what: str) -> ObjectId:
+    """An id argument: an ObjectId, or its 24 hexadecimal digits."""
+    if isinstance(value, ObjectId):
+        return value
+    if isinstance(value, str) and ObjectId.is_valid(value):
+        return ObjectId(value)
+    raise TypeError(f"{what}: expected an ObjectId or its 24 hexadecimal digits, got "
+                    f"{value!r:.60}")
+
+
+def checked(values: Sequence, kinds: type | tuple[type, ...], what: str) -> Sequence:
+    """The values, if each is of these kinds (a dict is not a Scene: Scene.model_validate
+    makes one of it)."""
+    for value in values:
+        if not isinstance(value, kinds):
+            names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple)
+                                                     else (kinds,)))
+            raise TypeError(f"{what}: expected {names}, got {type(value).__name__}")
+    return values
+
+
 def prepared(scenes: Sequence[Scene], stored: dict, threshold: int) -> PreparedWrite:
     """Assign ids and encode the scenes not in `stored` (their key -> SceneIds). Two
     different scenes under one (robot, timestamp) refuse the write (SceneExists), as one
     already stored does (store.py): the second would be lost."""
+    checked(scenes, Scene, "scenes")
     refuse_repeats(scenes)
     before = [id_snapshot(scene) for scene in scenes]
     fresh, results = partition(scenes, stored)

@@ -400,6 +400,7 @@ class MemoryStore(StoreBase):
         return docs.stored_by_key(found, clusters)
 
     def get_scene(self, scene_id: ObjectId) -> Scene:
+        scene_id = docs.as_id(scene_id, "scene_id")
         doc = self.scenes.find_one({"_id": scene_id})
         if doc is None:
             raise NotFound("scene", scene_id)
@@ -409,6 +410,7 @@ class MemoryStore(StoreBase):
     # --- clusters and annotations -------------------------------------------------------
 
     def get_cluster(self, cluster_id: ObjectId) -> Cluster:
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
         doc = self.clusters.find_one({"_id": cluster_id})
         if doc is None:
             raise NotFound("cluster", cluster_id)
@@ -434,6 +436,7 @@ class MemoryStore(StoreBase):
 
     def update_cluster(self, cluster: Cluster) -> None:
         """Replace a stored cluster by the given version of it."""
+        docs.checked([cluster], Cluster, "cluster")
         if cluster.id is None:
             raise StoreError("the cluster has no id: store it as part of a scene first")
         self._rewrite_cluster(cluster.id, lambda stored: cluster)
@@ -450,6 +453,8 @@ class MemoryStore(StoreBase):
         """Append several annotations in one transaction, all or none; idempotent by id.
         `then(before, after, session)`: more writes in the same transaction, given the
         cluster's annotations before and the cluster after."""
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
+        docs.checked(annotations, Annotation, "annotations")
         annotation_ids = [annotation.ensure_id() for annotation in annotations]
         self._rewrite_cluster(cluster_id, lambda cluster: docs.appended(cluster, annotations),
                               then)
@@ -457,6 +462,8 @@ class MemoryStore(StoreBase):
 
     def update_annotation(self, cluster_id: ObjectId, annotation: Annotation) -> None:
         """Replace the annotation with the same id on a stored cluster."""
+        cluster_id = docs.as_id(cluster_id, "cluster_id")
+        docs.checked([annotation], Annotation, "annotation")
         self._rewrite_cluster(cluster_id, lambda cluster: docs.replaced(cluster, annotation))
 
     def _rewrite_cluster(self, cluster_id: ObjectId, change: ClusterChange,
@@ -530,6 +537,7 @@ class MemoryStore(StoreBase):
     def put_blob(self, data: bytes) -> str:
         """Store bytes under their content hash (in `binaries`, or GridFS when large); returns
         the blob id."""
+        docs.checked([data], (bytes, bytearray, memoryview), "data")
         blob_id = content_id(data)
         self._transaction(lambda session: self._put_blobs({blob_id: data}, session))
         return blob_id

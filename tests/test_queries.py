@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import re
 from collections import Counter
+from datetime import UTC, datetime
 
 import pytest
 from bson import ObjectId
@@ -21,6 +22,7 @@ from percept_memory.memory.async_store import AsyncMemoryStore
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import (
+    Annotation,
     Classification,
     Cluster,
     Detection,
@@ -28,6 +30,7 @@ from percept_memory.memory.types import (
     Logo,
     Scene,
     Text,
+    stored_type,
 )
 from percept_memory.memory.types.curation import Undo
 from percept_memory.queries.compile import cluster_filter
@@ -145,6 +148,37 @@ def test_predicates_on_mapping_keys_and_on_types_this_version_does_not_know(engi
     (hit,) = engine.clusters(where="rs.annotation.Weight:grams>1000").items
     assert hit.id == scene.clusters[0].id
     assert not engine.clusters(where="rs.annotation.Weight:grams>2000").items
+
+
+@stored_type("test.annotation.Seen", aliases=("rs.annotation.Seen",))
+class Seen(Annotation):
+    """A type with a time, known by a foreign name too (as the README's Weight)."""
+
+    grams: float = 0.0
+    when: datetime | None = None
+
+
+def test_a_type_is_found_by_its_times_and_under_its_aliases_too(engine, store):
+    """Stored under its alias by a process that had not imported the class, an annotation
+    read back as the class, but a predicate on the class missed it; a datetime field was
+    "not a scalar field"."""
+    as_class = Seen(grams=700, when=datetime(2026, 11, 29, 3, 4, 5, tzinfo=UTC))
+    by_alias = Unknown(type_name="rs.annotation.Seen", fields={"grams": 900.0})
+    scene = Scene(timestamp=3, robot="seen", clusters=[Cluster(annotations=[as_class]),
+                                                       Cluster(annotations=[by_alias])])
+    store.put_scene(scene)
+    mine = {c.id for c in scene.clusters}
+
+    def found(where):
+        return {h.id for h in engine.clusters(robot="seen", where=where).items} & mine
+
+    assert found("test.annotation.Seen:grams>=500") == mine
+    assert found("rs.annotation.Seen:grams>800") == {scene.clusters[1].id}
+    assert found("test.annotation.Seen:when>2026-01-01") == {scene.clusters[0].id}
+    assert found("test.annotation.Seen:when<2026-11-29T03:04:05Z") == set()
+    assert found(f"test.annotation.Seen:when<={1_800_000_000 * 10**9}") == {scene.clusters[0].id}
+    with pytest.raises(ValidationError, match="a time is ISO 8601 or nanoseconds"):
+        engine.clusters(where="test.annotation.Seen:when>yesterday")
 
 
 def test_a_value_two_types_share_is_found_for_each_type(engine, store):

@@ -18,6 +18,7 @@ from collections import defaultdict
 
 from bson import ObjectId
 
+from percept_memory.converters.registry import aliases_of, class_for
 from percept_memory.memory.schema import CORRECTED
 from percept_memory.memory.search_keys import AXES, normal_label
 
@@ -80,9 +81,17 @@ def predicate_clauses(f: ClusterFilter) -> list[dict]:
     labels = sorted({p.label for p in f.where} - {None})
     return [*({"$or": [{"search.labels": label}, CORRECTED]} for label in labels),
             *({"annotations": {"$elemMatch": {
-                "_type": type_name, **fields, **({"$and": again[type_name]}
-                                                 if again[type_name] else {})}}}
+                "_type": stored_as(type_name), **fields, **({"$and": again[type_name]}
+                                                            if again[type_name] else {})}}}
               for type_name, fields in by_type.items())]
+
+
+def stored_as(type_name: str) -> str | dict:
+    """The `_type`s a type's annotations are stored under: its name, and its aliases (names
+    another program gave it, written by a process that did not know the class)."""
+    cls = class_for(type_name)
+    aliases = aliases_of(cls) if cls is not None else []
+    return {"$in": [type_name, *aliases]} if aliases else type_name
 
 
 def conjunction(clauses: list[dict]) -> dict:

@@ -36,6 +36,7 @@ from percept_memory.memory.search_keys import field_key, field_path, normal_labe
 from percept_memory.memory.types import (
     Annotation,
     Id,
+    datetime_from_timestamp,
     timestamp_from_datetime,
     timestamp_from_iso,
 )
@@ -250,14 +251,22 @@ def annotation_field(text: str) -> tuple[str, str]:
 
 
 def _scalar(kind: Any) -> bool:
-    """Whether a field's values are numbers, texts or truths (what an index orders)."""
+    """Whether a field's values are numbers, texts, truths or times (what an index orders)."""
     origin, args = typing.get_origin(kind), typing.get_args(kind)
     if origin is typing.Annotated:
         return _scalar(args[0])
     if origin in (typing.Union, types.UnionType):
         return all(_scalar(arm) for arm in args if arm is not type(None))
     return origin is typing.Literal or (isinstance(kind, type) and issubclass(
-        kind, int | float | str | bool | enum.Enum))
+        kind, int | float | str | bool | enum.Enum | datetime))
+
+
+def _a_time(kind: Any) -> bool:
+    """Whether a field holds datetimes (stored as BSON dates)."""
+    origin, args = typing.get_origin(kind), typing.get_args(kind)
+    if origin is typing.Annotated or origin in (typing.Union, types.UnionType):
+        return any(_a_time(arm) for arm in args if arm is not type(None))
+    return isinstance(kind, type) and issubclass(kind, datetime)
 
 
 def _resolve_field(type_name: str, parts: list[str], value: Any) -> tuple[str, Scalar]:
@@ -315,7 +324,13 @@ def _json_scalar(value: Any) -> Scalar:
     return value
 
 
-def _converted(value: Any, kind: Any, where: str) -> Scalar:
+def _converted(value: Any, kind: Any, where: str) -> Scalar | datetime:
+    if _a_time(kind):  # as every time here: ISO 8601 (naive is UTC) or nanoseconds
+        try:
+            return datetime_from_timestamp(TypeAdapter(Time).validate_python(str(value)))
+        except ValidationError:
+            raise ValueError(f"{str(value)!r} is not a valid value for {where}: a time is "
+                             "ISO 8601 or nanoseconds since the epoch") from None
     first = _json_scalar(value)
     candidates = [first, str(value)] if isinstance(value, _TextValue) else [first]
     adapter = TypeAdapter(kind)

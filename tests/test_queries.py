@@ -148,6 +148,18 @@ def test_predicates_on_mapping_keys_and_on_types_this_version_does_not_know(engi
     (hit,) = engine.clusters(where="rs.annotation.Weight:grams>1000").items
     assert hit.id == scene.clusters[0].id
     assert not engine.clusters(where="rs.annotation.Weight:grams>2000").items
+    # an id or a time stored from Extended JSON ($oid, $date) is a BSON value: a text that
+    # can stand for one finds it too (none was found)
+    seen = Unknown(type_name="rs.annotation.Sighting", fields={
+        "ref": ObjectId("5f0000000000000000000001"),
+        "when": datetime(2026, 11, 29, 3, 4, 5, tzinfo=UTC), "name": "cup"})
+    scene = Scene(timestamp=4, robot="sighting", clusters=[Cluster(annotations=[seen])])
+    store.put_scene(scene)
+    for where, hits in [("ref=5f0000000000000000000001", 1), ("ref!=5f0000000000000000000001", 0),
+                        ("when>2026-01-01", 1), ("when<2026-01-01T00:00:00Z", 0),
+                        ("name=cup", 1), ("name!=cup", 0)]:
+        found = engine.clusters(robot="sighting", where=f"rs.annotation.Sighting:{where}")
+        assert len(found.items) == hits, where
 
 
 @stored_type("test.annotation.Seen", aliases=("rs.annotation.Seen",))

@@ -73,6 +73,11 @@ def predicate_clauses(f: ClusterFilter) -> list[dict]:
     by_type: dict[str, dict[str, dict]] = defaultdict(lambda: defaultdict(dict))
     again: dict[str, list[dict]] = defaultdict(list)  # an operator repeated on a field: all hold
     for p in f.where:
+        if len(p.values) > 1:  # any of them (none of them, for !=), in the type's $and
+            either = [{p.field: {p.operator: value}} for value in p.values]
+            again[p.type] += either if p.operator == "$ne" else [{"$or": either}]
+            by_type.setdefault(p.type, defaultdict(dict))  # (its $elemMatch holds them)
+            continue
         operators = by_type[p.type][p.field]
         if p.operator in operators:
             again[p.type].append({p.field: {p.operator: p.value}})

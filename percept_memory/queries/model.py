@@ -19,11 +19,13 @@ import typing
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
+from bson import ObjectId
 from pydantic import (
     BaseModel,
     BeforeValidator,
     ConfigDict,
     Field,
+    PrivateAttr,
     StringConstraints,
     TypeAdapter,
     ValidationError,
@@ -185,6 +187,8 @@ class Predicate(Strict):
     field: Annotated[str, StringConstraints(min_length=1, max_length=200)]
     op: Literal["=", "==", "!=", ">", ">=", "<", "<="] = "="
     value: Any = Field(json_schema_extra={"type": ["string", "number", "boolean", "null"]})
+    # of a type this program does not know, the BSON values the text may stand for too
+    _alternatives: list = PrivateAttr(default_factory=list)
 
     @model_validator(mode="before")
     @classmethod
@@ -207,7 +211,15 @@ class Predicate(Strict):
         object.__setattr__(self, "type", name)
         object.__setattr__(self, "field", stored)
         object.__setattr__(self, "value", value)
+        if class_for(name) is None:
+            self._alternatives = _bson_values(value)
         return self
+
+    @property
+    def values(self) -> list:
+        """The value, and for a type this program does not know, the id or time it may
+        stand for: stored from Extended JSON ($oid, $date), those fields hold BSON values."""
+        return [self.value, *self._alternatives]
 
     @property
     def key(self) -> str:
@@ -307,6 +319,18 @@ def _mapping_value_type(kind: Any) -> Any:
         if typing.get_origin(arm) is dict:
             return typing.get_args(arm)[1]
     return None
+
+
+def _bson_values(value: Any) -> list:
+    """The id (24 hexadecimal digits) or the time (ISO 8601) a text may stand for."""
+    if not isinstance(value, str):
+        return []
+    if ObjectId.is_valid(value):
+        return [ObjectId(value)]
+    try:
+        return [datetime_from_timestamp(timestamp_from_iso(value))]
+    except ValueError:
+        return []
 
 
 def _json_scalar(value: Any) -> Scalar:

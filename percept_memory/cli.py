@@ -26,7 +26,7 @@ import click
 from pydantic import ValidationError
 
 from percept_memory.ingest.errors import BackendSetupError, IngestError, SourceError
-from percept_memory.memory.errors import StoreError, redacted
+from percept_memory.memory.errors import StoreError, problems_line, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
 from percept_memory.memory.settings import Settings, collect_less, settings_help
 
@@ -63,9 +63,7 @@ class _Group(click.Group):
 def one_line(error: Exception) -> str:
     """An error as one line: pydantic's as `field: problem; ...` (no input echoed, no URL)."""
     if isinstance(error, ValidationError):
-        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'input'}: "
-                         f"{e['msg'].removeprefix('Value error, ')}"
-                         for e in error.errors(include_url=False))
+        return problems_line(error)
     return " ".join(str(error).split())
 
 

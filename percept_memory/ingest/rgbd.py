@@ -58,6 +58,7 @@ from scipy.spatial.transform import Rotation
 from percept_memory.ingest.errors import SourceError
 from percept_memory.ingest.service import in_map
 from percept_memory.ingest.synthetic import KINECT
+from percept_memory.memory.errors import problems_line
 from percept_memory.memory.types import (
     CameraInfo,
     Cluster,
@@ -273,9 +274,7 @@ def _read_viewpoint(path: Path) -> Transform:
                          frame=parser["frame"]["frame"],
                          child_frame=parser["frame"]["child_frame"], stamp=stamp)
     except ValidationError as error:  # (a ValueError: pydantic's text is lines and a link)
-        raise SampleError(path, "bad value: " + "; ".join(
-            f"{'.'.join(map(str, e['loc']))}: {e['msg'].removeprefix('Value error, ')}"
-            for e in error.errors(include_url=False))) from None
+        raise SampleError(path, f"bad value: {problems_line(error)}") from None
     except ValueError as error:
         raise SampleError(path, f"bad value: {error}") from None
 

@@ -116,15 +116,14 @@ def as_id(value: Any, what: str) -> ObjectId:
                     f"{value!r:.60}")
 
 
-def checked(values: Sequence, kinds: type | tuple[type, ...], what: str) -> Sequence:
-    """The values, if each is of these kinds (a dict is not a Scene: Scene.model_validate
-    makes one of it)."""
+def checked(values: Sequence, kinds: type | tuple[type, ...], what: str) -> None:
+    """A TypeError unless each value is of these kinds (a dict is not a Scene:
+    Scene.model_validate makes one of it)."""
     for value in values:
         if not isinstance(value, kinds):
             names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple)
                                                      else (kinds,)))
             raise TypeError(f"{what}: expected {names}, got {type(value).__name__}")
-    return values
 
 
 def prepared(scenes: Sequence[Scene], stored: dict, threshold: int) -> PreparedWrite:
@@ -372,7 +371,7 @@ def refuse_repeats(scenes: Sequence[Scene]) -> None:
 
 def _model_content(scene: Scene) -> tuple:
     dump = scene.model_dump(mode="json", by_alias=True)
-    return _without_ids(dump), [_without_ids(cluster) for cluster in dump["clusters"]]
+    return _content(dump, dump["clusters"], stored=False)
 
 
 def partition(scenes: Iterable[Scene], stored: dict) -> tuple[list[Scene], list[SceneIds]]:

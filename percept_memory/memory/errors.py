@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
+from pydantic import ValidationError
 from pymongo.errors import BulkWriteError, DocumentTooLarge, DuplicateKeyError, OperationFailure
+
+
+def problems_line(error: ValidationError, whole: str = "input") -> str:
+    """A validation error as one line for people: `field.path: problem; ...` (`whole` for
+    one of the whole input), no input echoed, no link."""
+    return "; ".join(f"{'.'.join(map(str, e['loc'])) or whole}: "
+                     f"{e['msg'].removeprefix('Value error, ')}"
+                     for e in error.errors(include_url=False, include_input=False))
 
 
 class StoreError(RuntimeError):

@@ -25,7 +25,7 @@ from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
 from .annotator_charts import charts, confusion_table
-from .html import PageError, page
+from .html import PageError, page, problems
 
 
 def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
@@ -65,9 +65,7 @@ def _query(model: type[BaseModel], request: Request) -> BaseModel:
         return from_params(model, [(k, v) for k, v in request.query_params.multi_items()
                                    if v.strip()])
     except ValidationError as error:
-        problems = [f"{'.'.join(map(str, e['loc'])) or 'query'}: {e['msg']}"
-                    for e in error.errors(include_url=False)]
-        raise PageError(422, "these parameters are not valid", problems) from None
+        raise PageError(422, "these parameters are not valid", problems(error)) from None
 
 
 def _answered(run, query: BaseModel):

@@ -23,7 +23,7 @@ from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params
 
 from .errors import READ_ERRORS, WRITE_ERRORS
-from .html import PageError
+from .html import PageError, problems
 from .queries import query_parameters, small_body
 
 DESCRIPTION = (ExportQuery.__doc__ or "") + (
@@ -72,9 +72,8 @@ def export_router(store: MemoryStore, settings: Settings) -> APIRouter:
             query = form_query(request)
             return await run_in_threadpool(started, query)
         except ValidationError as error:
-            problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'export'}: {e['msg']}"
-                                 for e in error.errors(include_url=False))
-            raise PageError(422, f"not exported: {problems}") from None
+            raise PageError(422, f"not exported: {'; '.join(problems(error, 'export'))}"
+                            ) from None
         except (QueryError, NothingExported) as error:
             raise PageError(422, f"not exported: {error}") from None
 

@@ -95,6 +95,13 @@ def nanoseconds(text: str, name: str) -> int:
 TIME = TypeAdapter(Time)
 
 
+def problems(error: ValidationError, whole: str = "query") -> list[str]:
+    """A page's parameters' validation problems, one line each: `field: problem` (`whole` for
+    one of all of them)."""
+    return [f"{'.'.join(map(str, e['loc'])) or whole}: {e['msg']}"
+            for e in error.errors(include_url=False)]
+
+
 def nanoseconds_through(text: str, name: str) -> int:
     """The first nanosecond after the moment `text` names, to the precision it is written
     in: "until 08:30" is until 08:30 has passed (a form's time field gives minutes or

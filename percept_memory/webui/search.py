@@ -30,7 +30,7 @@ from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
 from .facets import cluster_facet_counts, shown
-from .html import PageError, page
+from .html import PageError, page, problems
 
 PAGE_SIZE = 48
 LOCAL_TIME = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d(:\d\d(\.\d{1,3})?)?$")
@@ -68,8 +68,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
                                   {"region": context["regions"], "robot": context["robots"]})
                 if query.near is None else _nothing())  # (the k nearest are not counted)
         except ValidationError as error:
-            context["problems"] = [f"{'.'.join(map(str, e['loc'])) or 'query'}: {e['msg']}"
-                                   for e in error.errors(include_url=False)]
+            context["problems"] = problems(error)
             return page(request, "search.html", context, 422)
         except QueryTimeout as error:
             context["problems"] = [f"{error}: narrow the search"]

@@ -29,7 +29,7 @@ from percept_memory.queries.similar import (
 )
 
 from .errors import READ_ERRORS, WRITE_ERRORS
-from .html import PageError, page
+from .html import PageError, page, problems
 from .queries import query_parameters
 from .search import with_crops
 
@@ -79,9 +79,7 @@ def routes(store: MemoryStore, similarity: Similarity) -> APIRouter:
                 raise QueryError("image: upload it with POST /api/similar")
             found = await run_in_threadpool(similarity.similar_to, query)
         except ValidationError as error:
-            problems = [f"{'.'.join(map(str, e['loc'])) or 'query'}: {e['msg']}"
-                        for e in error.errors(include_url=False)]
-            raise PageError(422, "; ".join(problems)) from None
+            raise PageError(422, "; ".join(problems(error))) from None
         except QueryError as error:
             raise PageError(422, str(error)) from None
         except NotFound as error:

@@ -108,8 +108,8 @@ class Learner:
         hits = Counter(alone)
         hits.update(chain.from_iterable(rare))
         if hits:
-            found = hits.keys()
-            hits.update(chain.from_iterable(found & clusters for clusters in common))
+            found = set(hits)  # once: a keys view & a set builds a set from the keys each time
+            hits.update(chain.from_iterable(clusters & found for clusters in common))
         else:
             hits.update(chain.from_iterable(common))
         n = len(graph)
@@ -368,7 +368,7 @@ class Learner:
                 if left:
                     union[element] = left
                 else:
-                    del union[element]
+                    union.pop(element)  # (dict's own, in C: Counter's `del` is Python)
                     gone.append(element)
         for m in members - old:
             for element in self.models[m].graph.elements:

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import json
 import typing
-from datetime import UTC, datetime
 from typing import Any
 
 from bson import ObjectId
 from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
+from percept_memory.memory.types import iso_from_timestamp
 from percept_memory.queries.results import NOW, Moment
 
 COLUMNS = {  # what a table of each kind of row shows, in order
@@ -124,8 +124,8 @@ def iso(ns: int | None, precise: bool = True) -> str | None:
         return None
     if ns == NOW:
         return "now"
-    seconds = datetime.fromtimestamp(ns // 10**9, UTC).strftime("%Y-%m-%dT%H:%M:%S")
-    return f"{seconds}.{ns % 10**9:09d}Z" if precise else f"{seconds}Z"
+    text = iso_from_timestamp(ns)
+    return text if precise else text[:19] + "Z"
 
 
 def is_moment(info: FieldInfo) -> bool:

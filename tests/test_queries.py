@@ -407,7 +407,12 @@ def test_where_was_lists_the_places_of_an_object_in_time_order(engine, store, ki
     windowed = engine.where_was(str(fairy.object_id), after=after)[0].places
     assert windowed and windowed == [p for p in places if p.until is None or p.until >= after]
     early = engine.where_was(str(fairy.object_id), before=places[0].since)[0].places
-    assert [(p.since, p.observations) for p in early] == [(places[0].since, 1)]
+    assert early == places[:1]  # read on to its end: not "still there", nor fewer sightings
+    middle = places[len(places) // 2]
+    during = engine.where_was(str(fairy.object_id), after=middle.since,
+                              before=middle.last_seen)[0].places
+    assert during == [p for p in places if p.since <= middle.last_seen
+                      and (p.until is None or p.until >= middle.since)]
     with pytest.raises(ValidationError, match="later than"):
         engine.where_was("fairy", after=after, before=after - 1)
 

@@ -85,7 +85,9 @@ def test_each_step_goes_to_the_scene_it_names(filled, times):
     between = (times[k] + times[k + 1]) // 2
     assert engine.playback(robot=ROBOT, t=between).time == times[k]
     assert engine.playback(robot=ROBOT, t=between, step="next").time == times[k + 1]
-    assert engine.playback(robot=ROBOT, t=between, step="previous").time == times[k]
+    # a step is taken from the scene shown at t (README): the frame's own previous and next
+    assert engine.playback(robot=ROBOT, t=between, step="previous").time == times[k - 1]
+    assert engine.playback(robot=ROBOT, t=times[k], step="previous").time == times[k - 1]
     assert engine.playback(robot=ROBOT, map=MAP, t=between, step="first").time == times[0]
     assert engine.playback(robot=ROBOT, step="last").time == times[-1]
     assert engine.playback(robot=ROBOT, map=MAP, t=0).time == times[0]  # before the first

@@ -71,7 +71,7 @@ from pymongo.errors import (
 from .documents import outbox_entry
 from .schema import MAPS, OUTBOX, SCENES
 from .store import MemoryStore
-from .types import datetime_from_timestamp
+from .types import iso_from_timestamp
 
 log = logging.getLogger(__name__)
 
@@ -623,7 +623,7 @@ def status(store: MemoryStore, held_limit: int = 50) -> dict:
         watermark = doc.get("consolidated")
         rows.append({
             "map": name,
-            "consolidated_until": _iso(watermark[0]) if watermark else None,
+            "consolidated_until": iso_from_timestamp(watermark[0]) if watermark else None,
             "consolidated_until_ns": watermark[0] if watermark else None,
             "pending": counts.get(name, {}).get("pending", 0),
             "held": counts.get(name, {}).get("held", 0),
@@ -631,11 +631,7 @@ def status(store: MemoryStore, held_limit: int = 50) -> dict:
             "rebuilding": bool(doc.get("rebuild") or doc.get("catch_up")),
             "consolidator": lease.get("owner"),
         })
-    held = [{"scene_id": str(e["_id"]), "map": e["map"], "time": _iso(e["time"]),
+    held = [{"scene_id": str(e["_id"]), "map": e["map"], "time": iso_from_timestamp(e["time"]),
              "time_ns": e["time"], "attempts": e["attempts"], "error": e["error"]}
             for e in outbox.find({"held": True}).sort(ORDER).limit(held_limit)]
     return {"maps": rows, "held": held}
-
-
-def _iso(ns: int) -> str:
-    return datetime_from_timestamp(ns).isoformat().replace("+00:00", "Z")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from percept_memory.memory.errors import NotFound
 from percept_memory.memory.schema import EVENTS, SCENES
+from percept_memory.memory.types import iso_from_timestamp
 
 from .model import Playback
 from .ops import Find, Plan
@@ -29,6 +30,10 @@ def playback(q: Playback) -> Plan[Frame]:
     if q.step == "event":
         found = yield from _event_scene(q, sequence, t)
     else:
+        if q.step == "previous":  # the step is taken from the scene shown at t
+            shown = yield from _scene({**sequence, **_step("at", t)[0]}, BACKWARD,
+                                      {"timestamp": 1})
+            t = t if shown is None else shown["timestamp"]
         condition, order, wanted = _step(q.step, t)
         found = yield from _scene({**sequence, **condition}, order, FRAME_FIELDS)
         if found is None and q.step == "at":  # before the sequence's first scene: that one
@@ -44,7 +49,7 @@ def _named(q: Playback) -> str:
 
 def _step(step: str, t: int) -> tuple[dict, tuple, str]:
     """The condition a step puts on the robot's scenes, their order, and what it looks for."""
-    when = "now" if t == NOW else f"{t} ns"
+    when = "now" if t == NOW else iso_from_timestamp(t)
     if step == "at":
         return {"timestamp": {"$lte": t}}, BACKWARD, f"at or before {when}"
     if step in ("first", "last"):
@@ -69,7 +74,7 @@ def _event_scene(q: Playback, sequence: dict, t: int) -> Plan[dict]:
     found = yield Find(SCENES, {"_id": {"$in": [e["scene_id"] for e in events]}, **sequence},
                        FRAME_FIELDS, (("timestamp", 1),), 1)
     if not found:
-        raise NotFound(_named(q), f"after {t} with an event of the object {q.object}")
+        raise NotFound(_named(q), f"after {iso_from_timestamp(t)} with an event of the object {q.object}")
     return found[0]
 
 

@@ -146,18 +146,39 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
     window, those it was at during it, each whole (its stay begun before the window keeps its
     start and its sightings)."""
     found = yield from resolve(q.x, q.limit)
-    window = time_window(None, q.before)
-    events = yield Find(EVENTS, {"object_id": {"$in": [o["_id"] for o, _ in found]},
-                                 **({"time": window} if window else {})},
-                        {"object_id": 1, "time": 1, "explanation": 1, "region": 1,
-                         "position": 1}, (("object_id", 1), ("time", -1)))
+    ids = [o["_id"] for o, _ in found]
+    upto = {"time": time_window(None, q.before)} if q.before is not None else {}
+    events = yield Find(EVENTS, {"object_id": {"$in": ids}, **upto}, STAY_FIELDS,
+                        (("object_id", 1), ("time", -1)))
+    if q.before is not None:  # the stay open at `before` read on to its end: whole
+        events += yield from _to_the_end_of_stays(ids, q.before)
     by_object: dict = {}
-    for event in reversed(events):  # oldest first
+    for event in sorted(events, key=lambda e: e["time"]):  # oldest first
         by_object.setdefault(event["object_id"], []).append(event)
     return [HistoryAnswer(object=_belief(o, match), places=[
         stay for stay in stays(by_object.get(o["_id"], []))
-        if q.after is None or stay.until is None or stay.until >= q.after])
+        if (q.after is None or stay.until is None or stay.until >= q.after)
+        and (q.before is None or stay.since <= q.before)])
         for o, match in found]
+
+
+STAY_FIELDS = {"object_id": 1, "time": 1, "explanation": 1, "region": 1, "position": 1}
+ENDS_A_STAY = ["appear", "move", "disappear"]
+
+
+def _to_the_end_of_stays(ids: list, before: int) -> Plan[list[dict]]:
+    """Each object's events after `before` up to the one that ends the stay it was in then
+    (a move or a disappear; none: up to now), one index seek each to find that end."""
+    spans = []
+    for object_id in ids:
+        end = yield Find(EVENTS, {"object_id": object_id, "time": {"$gt": before},
+                                  "explanation": {"$in": ENDS_A_STAY}}, {"time": 1},
+                         (("object_id", 1), ("time", 1)), 1)
+        spans.append({"object_id": object_id,
+                      "time": {"$gt": before, **({"$lte": end[0]["time"]} if end else {})}})
+    if not spans:
+        return []
+    return (yield Find(EVENTS, {"$or": spans}, STAY_FIELDS))
 
 
 def stays(events: list[dict]) -> list[Stay]:

@@ -107,6 +107,12 @@ def timestamp_from_iso(text: str) -> int:
     return timestamp_from_datetime(datetime.fromisoformat(text)) + nanoseconds
 
 
+def iso_from_timestamp(nanoseconds: int) -> str:
+    """A timestamp in ISO 8601 UTC to the nanosecond, as timestamp_from_iso reads it back."""
+    seconds = datetime.fromtimestamp(nanoseconds // 10**9, UTC).strftime("%Y-%m-%dT%H:%M:%S")
+    return f"{seconds}.{nanoseconds % 10**9:09d}Z"
+
+
 def datetime_from_timestamp(nanoseconds: int) -> datetime:
     """The UTC datetime of a timestamp (to the microsecond, all Python keeps)."""
     return datetime.fromtimestamp(nanoseconds // 1000 / 1_000_000, tz=UTC)

@@ -73,17 +73,26 @@ def as_text(answer: Any) -> str:
     """The answer for people: a list as a table; a model's fields as `name: value` lines,
     its lists as tables under their name, a model in it as indented lines."""
     if isinstance(answer, list):
+        if answer and _has_tables(answer[0]):  # rows of rows (a history): a block each
+            return "\n\n".join(as_text(row) for row in answer)
         return table(answer)
     lines = []
     for name, info in type(answer).model_fields.items():
         value = getattr(answer, name)
         if isinstance(value, list) and (not value or isinstance(value[0], BaseModel)):
             lines += [f"{name}:", _indented(table(value))]
-        elif isinstance(value, BaseModel):
-            lines += [f"{name}:", _indented(as_text(value))]
+        elif isinstance(value, BaseModel):  # a kind of row: as a row, else its fields
+            lines += [f"{name}:", _indented(table([value]) if type(value).__name__ in COLUMNS
+                                            else as_text(value))]
         else:
             lines.append(f"{name}: {cell(value, is_moment(info))}")
     return "\n".join(lines)
+
+
+def _has_tables(row: Any) -> bool:
+    return isinstance(row, BaseModel) and any(
+        isinstance(value, list) and value and isinstance(value[0], BaseModel)
+        for value in (getattr(row, name) for name in type(row).model_fields))
 
 
 def table(rows: list[BaseModel]) -> str:
@@ -111,9 +120,9 @@ def cell(value: Any, moment: bool = False) -> str:
         return "(" + ", ".join(cell(item) for item in value) + ")"
     if isinstance(value, list):
         value = ", ".join(cell(item) for item in value)
-    if isinstance(value, BaseModel):
-        value = " ".join(cell(getattr(value, name)) for name in NESTED
-                         if getattr(value, name, None) is not None)
+    if isinstance(value, BaseModel):  # a place (short: shown whole)
+        return " ".join(cell(getattr(value, name)) for name in NESTED
+                        if getattr(value, name, None) is not None)
     text = str(value)
     return text if len(text) <= WIDEST else text[:WIDEST - 3] + "..."
 

@@ -234,3 +234,14 @@ def test_pmem_query_takes_the_subject_as_argument_and_where_and_when_as_options(
     assert missing.exit_code == 1 and "--t1" in missing.output
     nothing = run(main, ["query", "where-is", "zzyzx"], env=env)
     assert nothing.exit_code == 0 and nothing.stdout == "" and "nothing matches" in nothing.output
+    # a history: each object a block, its row and its stays' table with their times
+    was = run(main, ["query", "where-was", "Heinz", "--limit", "1"], env=env)
+    assert was.exit_code == 0, was.output
+    lines = was.stdout.splitlines()
+    assert lines[0] == "object:" and lines[1].split()[:2] == ["name", "state"]
+    assert lines[3] == "places:" and lines[4].split()[:4] == ["region", "position", "since",
+                                                               "last_seen"]
+    assert "until" in lines[4] and re.search(r"shelf .* 2024-03-\d\dT\d\d:\d\d:\d\dZ", lines[5])
+    changes = run(main, ["query", "changes", "--region", "table", "--t1", "2024-03-06T08:00",
+                         "--t2", "2024-03-06T12:00"], env=env)
+    assert changes.exit_code == 0 and "..." not in changes.stdout  # places shown whole

@@ -19,6 +19,7 @@ from percept_memory.converters import Unknown, registry
 from percept_memory.demo import kitchen_week as kw
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.async_store import AsyncMemoryStore
+from percept_memory.memory.errors import NotFound
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.store import CLIENT_OPTIONS
 from percept_memory.memory.types import (
@@ -274,6 +275,20 @@ def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
     for name, region in kw.REGIONS.items():
         box = f"{region.x[0]},{region.y[0]},0,{region.x[1]},{region.y[1]},2"
         assert engine.what_is_at(box=box, t=t) == engine.what_is_at(region=name, t=t)
+
+
+def test_a_place_never_seen_is_not_found_naming_the_known_ones(engine, kitchen):
+    """A misspelt region or map answered "nothing there" before, as if the place were
+    empty; a region known but empty at t still answers with no objects."""
+    week, _ = kitchen
+    t = week.truth.scenes[100].time
+    with pytest.raises(NotFound, match=r"no region 'Table'.*regions: .*'shelf', 'table'"):
+        engine.what_is_at(region="Table", t=t)
+    with pytest.raises(NotFound, match=r"no region 'counter' in map 'kitchen-week'"):
+        engine.changes(region="counter", map="kitchen-week", t1=t)
+    with pytest.raises(NotFound, match=r"no map 'Kitchen-Week': maps: .*'kitchen-week'"):
+        engine.what_is_at(map="Kitchen-Week", t=t)
+    assert engine.what_is_at(region="table", t=week.truth.scenes[0].time - 1).objects == []
 
 
 def test_what_is_at_a_region_looks_only_at_the_objects_ever_there(store, kitchen):

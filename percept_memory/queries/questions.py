@@ -16,7 +16,7 @@ from bson.min_key import MinKey
 
 from percept_memory.converters import name_of, unescape_key
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, OBJECTS
+from percept_memory.memory.schema import CLUSTERS, EVENTS, LABELS, MAPS, OBJECTS
 from percept_memory.memory.search_keys import words
 from percept_memory.memory.types import Rejection
 
@@ -247,13 +247,28 @@ def ever_at(place: Place, t: int) -> Plan[dict]:
         if place.map is None:
             return {"$gte": MinKey()}
         found = yield Find(OBJECTS, in_map, {"_id": 1})
+        if not found and not (yield Find(MAPS, {"_id": place.map}, {"_id": 1}, limit=1)):
+            raise NotFound("map", repr(place.map), "maps: " + (yield from _known(MAPS, "_id")))
         return {"$in": [doc["_id"] for doc in found]}
     found = yield Aggregate(EVENTS, [
         {"$match": {"region": place.region, "time": {"$lte": t}, **in_map}},
         {"$sort": {"region": 1, "object_id": 1}},
         {"$group": {"_id": "$object_id"}},
     ])
+    if not found and not (yield Find(EVENTS, {"region": place.region, **in_map}, {"_id": 1},
+                                     limit=1)):  # a name no object was ever seen in
+        raise NotFound("region", repr(place.region) + (f" in map {place.map!r}" if place.map
+                                                       else ""),
+                       "regions: " + (yield from _known(OBJECTS, "region", in_map)))
     return {"$in": [doc["_id"] for doc in found]}
+
+
+def _known(collection: str, field: str, condition: dict | None = None) -> Plan[str]:
+    """The names a misspelt one may have meant (matched exactly: a region's name is its
+    annotators' own)."""
+    found = yield Aggregate(collection, [{"$match": condition or {}},
+                                         {"$group": {"_id": f"${field}"}}, {"$sort": {"_id": 1}}])
+    return ", ".join(repr(doc["_id"]) for doc in found if doc["_id"] is not None) or "none yet"
 
 
 def _at(place: Place) -> dict:

@@ -140,6 +140,18 @@ def test_unknown_objects_are_404_and_query_errors_422(client):
     big = client.post("/api/clusters", content=b"{" + b" " * 70_000 + b"}",
                       headers={"content-type": "application/json"})
     assert big.status_code == 413
+    # a window whose ends are reversed, on every question that takes one (some answered [])
+    for path, params in (("/api/stats/cooccurrence", {}), ("/api/stats/timings", {}),
+                         ("/api/where-was", {"x": "ketchup"}), ("/api/clusters", {})):
+        reversed_ = client.get(path, params={**params, "after": "2024-03-07",
+                                             "before": "2024-03-05"})
+        assert reversed_.status_code == 422 and "later than" in reversed_.text, path
+    future = client.get("/api/changes", params={"region": "table", "t1": "2200-01-01"})
+    assert future.status_code == 422 and "later than now" in future.text
+    beyond = client.get("/api/changes", params={"region": "table", "t1": "2999-01-01"})
+    assert beyond.status_code == 422 and "to 2262-04-11" in beyond.text
+    nowhere = client.get("/api/what-is-at", params={"region": "Table"})
+    assert nowhere.status_code == 404 and "'table'" in nowhere.json()["error"]["message"]
 
 
 class _Commands(monitoring.CommandListener):

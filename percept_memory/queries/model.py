@@ -14,6 +14,7 @@ import enum
 import json
 import math
 import re
+import time
 import types
 import typing
 from datetime import datetime
@@ -57,17 +58,21 @@ Name = Annotated[str, StringConstraints(min_length=1, max_length=200)]
 def _nanoseconds(value: Any) -> Any:
     """A time given as nanoseconds since the epoch (int or digits) or ISO 8601 (naive is UTC)."""
     if isinstance(value, datetime):
-        return timestamp_from_datetime(value)
-    if isinstance(value, str):
+        value = timestamp_from_datetime(value)
+    elif isinstance(value, str):
         if value.strip().isdigit():
-            return int(value)
-        try:
-            return timestamp_from_iso(value)
-        except ValueError:
-            raise ValueError(f"expected nanoseconds since the epoch or an ISO 8601 time such "
-                             f"as 2024-03-05T08:00, got {value!r}") from None
+            value = int(value)
+        else:
+            try:
+                value = timestamp_from_iso(value)
+            except ValueError:
+                raise ValueError(f"expected nanoseconds since the epoch or an ISO 8601 time "
+                                 f"such as 2024-03-05T08:00, got {value!r}") from None
     if isinstance(value, bool):
         raise ValueError("expected a time, got a boolean")
+    if isinstance(value, int) and not 0 <= value < 2**63:  # (said as times, not as 2**63)
+        raise ValueError("expected a time from 1970-01-01 to 2262-04-11T23:47:16Z (int64 "
+                         "nanoseconds since the epoch)")
     return value
 
 
@@ -463,14 +468,19 @@ class About(Strict):
         default=5, description="how many candidate objects, best first")
 
 
-class History(About):
-    after: Time | None = None
-    before: Time | None = None
+class Window(Strict):
+    """A question with a time window (`after`, `before`: its own last fields, so that the
+    engine's methods take the subject first), its ends in order when both are given."""
 
     @model_validator(mode="after")
     def _in_order(self):
         in_order(self.after, self.before)
         return self
+
+
+class History(About, Window):
+    after: Time | None = None
+    before: Time | None = None
 
 
 def in_order(after: int | None, before: int | None) -> None:
@@ -507,10 +517,12 @@ class Between(Place):
     def _ordered(self):
         if self.t2 is not None and self.t2 < self.t1:
             raise ValueError("t2 is before t1")
+        if self.t2 is None and self.t1 > time.time_ns():
+            raise ValueError("t1 is later than now (t2's default)")
         return self
 
 
-class Cooccurrence(Strict):
+class Cooccurrence(Window):
     """Where objects are seen, how often (and at what hour of the day, UTC)."""
 
     x: Subject | None = Field(default=None, description="one object (text or id); all if unset")
@@ -519,7 +531,7 @@ class Cooccurrence(Strict):
     before: Time | None = None
 
 
-class Timings(Strict):
+class Timings(Window):
     """Per-annotator durations and problems, from the scenes' logs."""
 
     robot: Name | None = None

@@ -138,7 +138,9 @@ class ObjectAt(BaseModel):
     position: Position | None = None
     since: Nanoseconds  # time of the event that made it so
     explanation: str  # that event's explanation: appear, stay, move, newview, hidden, ...
-    cluster_id: Id | None = None  # the last observation of it up to that moment
+    # the observation that made it so; none when the event was no observation (its place
+    # seen without it: hidden, gone): where_was and last_seen give its last one
+    cluster_id: Id | None = None
 
 
 class Contents(BaseModel):

@@ -275,6 +275,11 @@ def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
     for name, region in kw.REGIONS.items():
         box = f"{region.x[0]},{region.y[0]},0,{region.x[1]},{region.y[1]},2"
         assert engine.what_is_at(box=box, t=t) == engine.what_is_at(region=name, t=t)
+        numbers = (region.x[0], region.y[0], 0, region.x[1], region.y[1], 2)  # as Python has it
+        assert engine.what_is_at(box=numbers, t=t) == engine.what_is_at(box=box, t=t)
+    assert engine.clusters(sphere=[1.9, 4.6, 0.8, 0.5]) == engine.clusters(sphere="1.9,4.6,0.8,0.5")
+    with pytest.raises(ValidationError, match="6 numbers, got 3"):
+        engine.clusters(box=(1, 2, 3))
 
 
 def test_a_place_never_seen_is_not_found_naming_the_known_ones(engine, kitchen):

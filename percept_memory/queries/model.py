@@ -90,6 +90,8 @@ def _numbers(count: int, what: str):
                 return [float(p) for p in parts]
             except ValueError:
                 raise ValueError(f"expected {what}: {count} numbers, got {value!r}") from None
+        if isinstance(value, list | tuple) and len(value) != count:
+            raise ValueError(f"expected {what}: {count} numbers, got {len(value)}")
         return value
 
     return BeforeValidator(parse)
@@ -122,7 +124,7 @@ class Box(Strict):
     @model_validator(mode="before")
     @classmethod
     def _from_text(cls, value: Any) -> Any:
-        if isinstance(value, str):
+        if isinstance(value, str | list | tuple):  # "x0,y0,z0,x1,y1,z1", or its numbers
             corners = _numbers(6, "a box x0,y0,z0,x1,y1,z1").func(value)
             return {"low": corners[:3], "high": corners[3:]}
         return value
@@ -143,7 +145,7 @@ class Sphere(Strict):
     @model_validator(mode="before")
     @classmethod
     def _from_text(cls, value: Any) -> Any:
-        if isinstance(value, str):
+        if isinstance(value, str | list | tuple):  # "x,y,z,radius", or its numbers
             numbers = _numbers(4, "a sphere x,y,z,radius").func(value)
             return {"center": numbers[:3], "radius": numbers[3]}
         return value

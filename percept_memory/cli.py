@@ -573,6 +573,8 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     if as_json:
         click.echo(json.dumps(report, indent=2))
         return
+    if not report["maps"]:
+        click.echo("no scene is stored yet: no map to consolidate", err=True)
     width = max((len(row["map"]) for row in report["maps"]), default=0)
     for row in report["maps"]:
         until = row["consolidated_until"] or "-"
@@ -651,6 +653,8 @@ def _change_field_index(settings: Settings, field: str, add: bool) -> None:
     except ValueError as error:
         raise click.ClickException(str(error)) from None
     with MemoryStore.open(settings) as store:
+        if add and path in store.field_indexes():
+            raise click.ClickException(f"{path} has an index already")
         if add:
             click.echo(f"indexing the annotations' {path} over "
                        f"{store.clusters.estimated_document_count()} clusters...", err=True)
@@ -676,6 +680,8 @@ def reindex(settings: Settings) -> None:
         with progress_bar("reindex") as bar:
             task = bar.add_task("clusters and scenes", total=total)
             count = store.reindex(lambda: bar.advance(task))
+    if not count:
+        raise click.ClickException("nothing to reindex: no cluster is stored")
     click.echo(f"reindexed {count} clusters")
 
 
@@ -1021,5 +1027,6 @@ def corrections(settings: Settings, author: str | None, limit: int, as_json: boo
                 or (row["split_off"] and f"{len(row['split_off'])} split off from "
                                           f"{len(row['apart_from'])}") or "")
         undone = f"  (undone by {row['undone_by']['author']})" if row["undone_by"] else ""
-        click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} cluster "
+        click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} "
+                   f"{answers.iso(row['time'], precise=False)}  cluster "
                    f"{row['cluster_id']}  {what}{undone}")

@@ -195,8 +195,10 @@ def test_a_command_that_finds_nothing_to_do_says_so_and_exits_1(mongo_uri):
     env = {"MONGODB_URI": mongo_uri, "PMEM_DB": "pmem_test_nothing_to_do"}
     try:
         assert "no scene to reconsolidate" in error_line(pmem("reconsolidate", **env))
+        assert "nothing to reindex: no cluster is stored" in error_line(pmem("reindex", **env))
         reported = pmem("pipeline", "--retry", **env)  # (a report, with a retry before it)
-        assert reported.exit_code == 0 and reported.stderr == "no held scene to retry\n"
+        assert reported.exit_code == 0 and reported.stderr == (
+            "no held scene to retry\nno scene is stored yet: no map to consolidate\n")
     finally:
         MongoClient(mongo_uri).drop_database(env["PMEM_DB"])
 
@@ -313,7 +315,7 @@ def test_index_adds_lists_and_drops_a_field_index_and_says_when_it_did_nothing(
     again = pmem("index", "add", "detection:name", **env)  # another field: its own index
     assert again.exit_code == 0 and "name" in store.field_indexes()
     twice = pmem("index", "add", "classification:class_name", **env)
-    assert twice.exit_code == 1 and "Error: class_name has an index already" in twice.output
+    assert twice.exit_code == 1 and twice.output == "Error: class_name has an index already\n"
     for bad, said in (("colorhistogram:histogram", "not a scalar field"),
                       ("classification", "expected type:field")):
         refused = pmem("index", "add", bad, **env)

@@ -45,7 +45,8 @@ def test_a_relabel_and_its_undo_from_the_command_line(env, store):
     assert [r["kind"] for r in rows[:2]] == ["undo", "relabel"]
     assert rows[0]["time"].endswith("Z") and isinstance(rows[0]["time_ns"], int)  # README
     assert rows[1]["undone_by"]["author"] == "bo"
-    assert "(undone by bo)" in pmem(env, "corrections", "--author", "ana").output
+    text = pmem(env, "corrections", "--author", "ana").output
+    assert "(undone by bo)" in text and f" ana          {rows[1]['time'][:19]}Z  cluster" in text
 
 
 def test_a_split_from_the_command_line(env, store):

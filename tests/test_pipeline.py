@@ -401,6 +401,8 @@ def test_a_scene_that_keeps_failing_is_held_with_its_error_and_the_rest_go_on(em
     assert held["scene_id"] == str(bad) and held["attempts"] == 3
     assert "failing: ValueError: cannot digest this scene" in held["error"]
     assert report["maps"][0]["held"] == 1 and report["maps"][0]["pending"] == 0
+    after = [ids[6].scene_id]  # went through, but its map's belief misses the held one
+    assert pipeline.held(after) and not pipeline.wait(after, timeout=5)
     consolidated = set(empty.db[EVENTS].distinct("scene_id"))
     assert bad not in consolidated  # all or nothing: none of its stages' writes landed
     assert {i.scene_id for i in ids} - {bad} <= consolidated | {
@@ -479,6 +481,14 @@ def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, 
     assert body["maps"][0]["consolidated_until_ns"] == week.scenes[5].timestamp
     page = client.get("/pipeline")
     assert page.status_code == 200 and kitchen_week.MAP in page.text
+
+    # a scene of the map held: the belief is not current, and the answer says why
+    held = IngestService(empty).ingest_batch(week.scenes[6:7])[0].scene_id
+    Pipeline(empty, [Failing({held})], backoff_s=0, max_attempts=1).drain(timeout=30)
+    assert status(empty)["held"][0]["scene_id"] == str(held)
+    posted = client.post("/api/scenes?wait=belief",
+                         json=week.scenes[7].model_dump(mode="json", exclude={"id"}))
+    assert posted.status_code == 201 and posted.json()["belief"] == "held"
 
 
 # --- maps and coordinates ----------------------------------------------------------------------

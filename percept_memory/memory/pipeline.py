@@ -188,6 +188,12 @@ class Pipeline:
         return sorted(self.outbox.distinct("map", {"_id": {"$in": list(scene_ids)},
                                                    "held": False}))
 
+    def held(self, scene_ids: Sequence[ObjectId]) -> bool:
+        """Whether a scene of these scenes' maps is held (its stage kept failing): their
+        belief misses it until it is retried, whatever went through after it."""
+        maps = self.store.db[SCENES].distinct("map", {"_id": {"$in": list(scene_ids)}})
+        return self.outbox.find_one({"map": {"$in": maps}, "held": True}, {"_id": 1}) is not None
+
     def _maps_catching_up(self, scene_ids: Sequence[ObjectId]) -> list[str]:
         """The maps of these scenes being rebuilt, not back yet where they were before."""
         rebuilding = self.maps.distinct("_id", {"catch_up": {"$ne": None}})
@@ -199,8 +205,9 @@ class Pipeline:
     def wait(self, scene_ids: Sequence[ObjectId], timeout: float) -> bool:
         """Until these scenes went through and their maps' belief is current (True) or the
         timeout passed (False): a late scene makes its map rebuild, and goes through first,
-        while the scenes after it are still to go through again. Works on them here unless a
-        background thread of this pipeline does."""
+        while the scenes after it are still to go through again. A scene of their maps held
+        keeps it from being current (False at once). Works on them here unless a background
+        thread of this pipeline does."""
         deadline = time.monotonic() + timeout
         with self._ingest:  # someone waits for the belief: no pause for ingest to go quiet
             self._waiting += 1
@@ -210,10 +217,11 @@ class Pipeline:
             while True:
                 if self._thread is not None and self._committed(scene_ids, deadline):
                     # (told by this process's thread: no need to ask the database)
-                    return self._caught_up(scene_ids, deadline - time.monotonic())
+                    return (self._caught_up(scene_ids, deadline - time.monotonic())
+                            and not self.held(scene_ids))
                 maps = self._maps_pending(scene_ids) or self._maps_catching_up(scene_ids)
                 if not maps:
-                    return True
+                    return not self.held(scene_ids)
                 if time.monotonic() >= deadline:
                     return False
                 if self._thread is None:
@@ -221,7 +229,7 @@ class Pipeline:
                         # another consolidator works on them: asked again after WAIT_POLL_S
                         self._committed(scene_ids, deadline)
                     elif self._went_through_all(scene_ids) and self._caught_up(scene_ids, 0):
-                        return True
+                        return not self.held(scene_ids)
         finally:
             with self._ingest:
                 self._waiting -= 1

@@ -132,7 +132,8 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         wait: Annotated[Literal["belief"] | None, Query(
             description="`belief`: answer once the new scenes are consolidated into the "
                         "belief (at most PMEM_BELIEF_WAIT_S); `belief` in the answer says "
-                        "whether they were")] = None,
+                        "whether they were: current, pending, or held (a scene of their "
+                        "maps is held: GET /api/pipeline)")] = None,
     ) -> dict[str, Any]:
         """Body: a scene, or a list of scenes, as GET /api/schema/scene describes; or, as
         `application/x-ndjson`, scenes one a line (blank lines skipped; a large batch is made
@@ -144,21 +145,26 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
         authorise(request, settings.token)
         ndjson = media_type(request.headers.get("content-type")) == NDJSON
 
-        def stored_and_settled() -> tuple[list, bool | None]:
+        def stored_and_settled() -> tuple[list, str | None]:
             """In one worker thread: the consolidator is asked for the scenes as soon as they
-            are stored, not after a turn of the event loop."""
+            are stored, not after a turn of the event loop. The belief's state after."""
             results = service.ingest_json(body, ndjson=ndjson)  # (the consolidator waits)
-            return results, wait and service.settled(results, settings.belief_wait_s)
+            if not wait:
+                return results, None
+            if service.settled(results, settings.belief_wait_s):
+                return results, "current"
+            ids = [r.scene_id for r in results]
+            return results, "held" if service.pipeline.held(ids) else "pending"
 
         with service.pipeline.ingesting():  # (and while the body comes)
             body = await _read_body(request, max_bytes)
         try:
-            results, settled = await run_in_threadpool(stored_and_settled)
+            results, belief = await run_in_threadpool(stored_and_settled)
         except NotScenes as error:
             raise ApiError(422, str(error)) from None
         except IngestError as error:
             raise ApiError(422, "the scenes are not valid", error.problems) from None
-        answer: dict[str, Any] = {"belief": "current" if settled else "pending"} if wait else {}
+        answer: dict[str, Any] = {"belief": belief} if wait else {}
         return {**answer, "scenes": [
             {"scene_id": str(r.scene_id), "cluster_ids": [str(c) for c in r.cluster_ids],
              "annotation_ids": [[str(a) for a in ids] for ids in r.annotation_ids],

@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bson import ObjectId
 from pymongo import AsyncMongoClient
 
 from percept_memory.demo import kitchen_week
@@ -31,7 +32,7 @@ from percept_memory.ingest.backends.simulated import (
     answer,
     sample_latency_s,
 )
-from percept_memory.ingest.jobs import LookupEnqueuer, job_report
+from percept_memory.ingest.jobs import JobQueue, LookupEnqueuer, job_report, utc_now
 from percept_memory.ingest.lookup_cache import HashIndex, LookupCache
 from percept_memory.ingest.lookups import Lookup
 from percept_memory.ingest.phash import crop_phash, hamming
@@ -377,6 +378,32 @@ def test_worker_killed_mid_lookup_job_done_once_by_another(fresh, mongo_uri, db_
     cluster = fresh.db[CLUSTERS].find_one()
     assert len(cluster["annotations"]) == 6  # 3 results + 3 derived, once
     assert len(server.requests) == 2
+
+
+def test_a_dead_workers_job_is_taken_over_before_the_backlog_queued_before_it(
+        fresh, mongo_uri, db_name):
+    """Its due time is its lease's end, later than every job queued before: sorted by due
+    alone, it waited for the whole backlog, running by a dead worker."""
+    at = utc_now()
+    fresh.db[JOBS].insert_many([{"kind": "lookup", "cluster_id": ObjectId(), "state": "queued",
+                                 "attempts": 0, "due": at, "created": at, "updated": at}
+                                for _ in range(3)])
+
+    async def claims() -> tuple:
+        client = AsyncMongoClient(mongo_uri)
+        try:
+            queue = JobQueue(client[db_name][JOBS], lease_s=0.5, max_attempts=5, backoff_s=1)
+            dead = await queue.claim("dead")  # and never heard of again
+            await dead.session.end_session()
+            await asyncio.sleep(0.6)
+            taken = await queue.claim("alive")
+            await taken.session.end_session()
+            return dead, taken
+        finally:
+            await client.close()
+
+    dead, taken = asyncio.run(claims())
+    assert taken.id == dead.id and taken.taken_over_from == "dead" and taken.attempts == 2
 
 
 KILLED_INSIDE_ITS_TRANSACTION = """

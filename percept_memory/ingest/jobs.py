@@ -116,14 +116,20 @@ class JobQueue:
             at = utc_now()
             token = ObjectId()
             session = self.jobs.database.client.start_session()
-            before = await self.jobs.find_one_and_update(
-                {"due": {"$lte": at}},
-                {"$set": {"state": "running", "worker": worker, "lease": token,
-                          "lease_until": at + self.lease, "due": at + self.lease,
-                          "updated": at, "session": session.session_id},
-                 "$inc": {"attempts": 1}},
-                sort=[("due", 1)], return_document=ReturnDocument.BEFORE,
-            )
+            before = None
+            # a dead worker's jobs first: due at their lease's end, they sort behind every job
+            # queued before it, and would wait for the whole backlog (their open writes too)
+            for due in ({"state": "running", "due": {"$lte": at}}, {"due": {"$lte": at}}):
+                before = await self.jobs.find_one_and_update(
+                    due,
+                    {"$set": {"state": "running", "worker": worker, "lease": token,
+                              "lease_until": at + self.lease, "due": at + self.lease,
+                              "updated": at, "session": session.session_id},
+                     "$inc": {"attempts": 1}},
+                    sort=[("due", 1)], return_document=ReturnDocument.BEFORE,
+                )
+                if before is not None:
+                    break
             if before is None:
                 await session.end_session()
                 return None

@@ -74,7 +74,8 @@ def _event_scene(q: Playback, sequence: dict, t: int) -> Plan[dict]:
     found = yield Find(SCENES, {"_id": {"$in": [e["scene_id"] for e in events]}, **sequence},
                        FRAME_FIELDS, (("timestamp", 1),), 1)
     if not found:
-        raise NotFound(_named(q), f"after {iso_from_timestamp(t)} with an event of the object {q.object}")
+        raise NotFound(_named(q), f"after {iso_from_timestamp(t)} with an event of the object "
+                                  f"{q.object}")
     return found[0]
 
 

@@ -222,7 +222,8 @@ def test_lookups_do_not_rename_the_objects_they_are_wrong_about(fresh, mongo_uri
 
 class LookupServer:
     """A JSON lookup service on 127.0.0.1 whose behaviour a test scripts: `answers` is a list
-    of (status, body or None, delay_s) used in turn (the last one repeats)."""
+    of (status, body or None, delay_s) used in turn (the last one repeats); a body given as
+    bytes is sent as they are, with no length."""
 
     def __init__(self, answers: list[tuple[int, dict | None, float]], token: str | None = None):
         self.answers, self.token, self.requests = answers, token, []
@@ -241,11 +242,13 @@ class LookupServer:
                     server.release.wait(60)
                 else:
                     time.sleep(delay)
-                data = json.dumps(payload or {}).encode()
+                streamed = isinstance(payload, bytes)  # sent with no length, up to the close
+                data = payload if streamed else json.dumps(payload or {}).encode()
                 try:
                     self.send_response(status)
                     self.send_header("content-type", "application/json")
-                    self.send_header("content-length", str(len(data)))
+                    if not streamed:
+                        self.send_header("content-length", str(len(data)))
                     self.end_headers()
                     self.wfile.write(data)
                 except BrokenPipeError:  # the client gave up waiting
@@ -302,6 +305,11 @@ def test_http_backend_sends_the_crop_and_auth_and_appends_typed_results(fresh, m
     ([(200, ANSWER, 3.0)], True, "gave no answer within 0.5 s", 3),
     ([(200, {"results": [{"category": "spaceship", "title": "x"}]}, 0)], True, "not valid", 3),
     ([(400, {"error": "not an image"}, 0)], False, "HTTP 400 from", 1),
+    # an answer too big to be findings, declared or streamed: read no further, not retried
+    ([(200, {"results": [{"category": "text", "title": "x" * 5_000_000}]}, 0)], False,
+     "bytes, more than 4,194,304", 1),
+    ([(200, b'{"results": [{"category": "text", "title": "' + b"x" * 5_000_000, 0)], False,
+     "is more than 4,194,304 bytes", 1),
 ])
 def test_backend_failures_are_retried_then_fail_keeping_the_error(fresh, mongo_uri, db_name,
                                                                    answers, retried, error,

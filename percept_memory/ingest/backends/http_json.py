@@ -8,7 +8,8 @@ Answer: `{"results": [{"category", "title", "box", "links", "brand", "properties
 
 Connection errors, timeouts, 429 and 5xx answers are retried at once a few times (0.1 s, 0.2 s,
 ... apart), then raised as BackendError so the job is retried later with backoff; any other 4xx
-is RejectedLookup (the job fails at once, keeping the service's message).
+is RejectedLookup (the job fails at once, keeping the service's message), as is an answer of
+more than MAX_ANSWER_BYTES.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from . import BackendError, Finding, RejectedLookup
 
 RETRY_PAUSE_S = 0.1
 JPEG_QUALITY = 90
+MAX_ANSWER_BYTES = 4 * 2**20  # findings take a few kB: far more is a broken service
 
 
 class Answer(BaseModel):
@@ -51,13 +53,15 @@ class HttpLookup:
                 "width": crop.shape[1], "height": crop.shape[0]}
         for attempt in range(self.retries + 1):
             try:
-                response = await self.client.post(self.url, json=body)
+                async with self.client.stream("POST", self.url, json=body) as response:
+                    content = await _bounded(response, self.url)
             except httpx2.TransportError as error:  # connection refused, reset, timed out
                 problem = f"{type(error).__name__} from {self.url}: {error}".rstrip(": ")
             else:
                 if response.status_code < 400:
-                    return _findings(response, self.url)
-                problem = f"HTTP {response.status_code} from {self.url}: {response.text[:200]}"
+                    return _findings(content, self.url)
+                problem = (f"HTTP {response.status_code} from {self.url}: "
+                           f"{content[:200].decode(errors='replace')}")
                 if response.status_code < 500 and response.status_code != 429:
                     raise RejectedLookup(problem)
             if attempt < self.retries:
@@ -68,9 +72,24 @@ class HttpLookup:
         await self.client.aclose()
 
 
-def _findings(response: httpx2.Response, url: str) -> list[Finding]:
+async def _bounded(response: httpx2.Response, url: str) -> bytes:
+    """The answer's body, read no further than MAX_ANSWER_BYTES: a broken or hostile service
+    streaming without end would otherwise fill the worker's memory (a job is failed)."""
+    declared = response.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > MAX_ANSWER_BYTES:
+        raise RejectedLookup(f"the answer of {url} is {int(declared):,} bytes, more than "
+                             f"{MAX_ANSWER_BYTES:,}")
+    content = bytearray()
+    async for chunk in response.aiter_bytes():
+        content += chunk
+        if len(content) > MAX_ANSWER_BYTES:
+            raise RejectedLookup(f"the answer of {url} is more than {MAX_ANSWER_BYTES:,} bytes")
+    return bytes(content)
+
+
+def _findings(content: bytes, url: str) -> list[Finding]:
     try:
-        return Answer.model_validate_json(response.content).results
+        return Answer.model_validate_json(content).results
     except ValidationError as error:
         problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
                              for e in error.errors(include_url=False)[:3])

@@ -28,7 +28,12 @@ from pydantic import ValidationError
 from percept_memory.ingest.errors import BackendSetupError, IngestError, SourceError
 from percept_memory.memory.errors import StoreError, problems_line, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
-from percept_memory.memory.settings import Settings, collect_less, settings_help
+from percept_memory.memory.settings import (
+    Settings,
+    collect_less,
+    settings_help,
+    settings_problems,
+)
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -83,7 +88,10 @@ def main(ctx: click.Context) -> None:
     logger = logging.getLogger("percept_memory")
     logger.handlers = [_StderrHandler()]
     logger.setLevel(logging.INFO)
-    ctx.obj = Settings()
+    try:
+        ctx.obj = Settings()
+    except ValidationError as error:
+        raise click.ClickException(settings_problems(error)) from None
 
 
 # --- pmem db: the embedded mongod --------------------------------------------------------------

@@ -206,6 +206,13 @@ def test_a_command_that_finds_nothing_to_do_says_so_and_exits_1(mongo_uri):
 def test_a_bad_database_name_and_a_port_in_use_are_one_error_line(mongo_uri):
     assert "PMEM_DB 'a/b' is not a MongoDB database name" in error_line(
         pmem("info", MONGODB_URI=mongo_uri, PMEM_DB="a/b"))
+    # a setting beyond what works is refused by its variable's name, before anything runs
+    # (inf and 1e12 crashed on a timedelta, or stopped the consolidator's thread, later)
+    for variable, value, said in (("PMEM_MAP_LEASE_S", "inf", "a finite number"),
+                                  ("PMEM_JOB_LEASE_S", "1e12", "less than or equal to 86400"),
+                                  ("PMEM_MAX_REQUEST_MB", "nan", "a finite number")):
+        assert error_line(pmem("info", MONGODB_URI=mongo_uri, **{variable: value})) == (
+            f"Error: {variable}: Input should be {said}")
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()

@@ -132,6 +132,30 @@ def test_a_scene_is_acknowledged_with_its_stages_pending_and_consolidated_once(e
                    "consolidated_until_ns": week.scenes[9].timestamp}
 
 
+def test_the_pipeline_thread_outlives_a_pass_that_fails(empty, week, monkeypatch, caplog):
+    """Any error of a pass (a bug; a lease of 1e12 s once) ended the thread: the server went
+    on storing scenes that no one consolidated."""
+    service = IngestService(empty)
+    service.pipeline.poll_s = 0.02
+    passes = []
+    real_pass = service.pipeline._pass
+
+    def failing_once() -> int:
+        passes.append(1)
+        if len(passes) == 1:
+            raise OverflowError("date value out of range")
+        return real_pass()
+
+    monkeypatch.setattr(service.pipeline, "_pass", failing_once)
+    service.pipeline.start()
+    try:
+        ids = service.ingest_batch(week.scenes[:3])
+        assert service.settled(ids, timeout=60)
+    finally:
+        service.pipeline.stop()
+    assert "pipeline: a pass failed; retrying" in caplog.text
+
+
 def test_the_pipeline_thread_gives_way_to_ingest_then_consolidates_everything_once(empty, week):
     service = IngestService(empty)
     service.pipeline.start()

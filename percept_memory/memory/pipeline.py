@@ -321,12 +321,17 @@ class Pipeline:
         """Work whenever there is work, until stop(); a database outage is waited out. A pass
         takes what was due when it looked: after one that did work, the next looks after
         QUIET_S (at once when this process stores a scene), not while whoever waited for that
-        work reads its answer."""
+        work reads its answer. A pass that fails is logged and tried again."""
         while not self._stop.is_set():
             try:
                 done = self._pass()
             except PyMongoError as error:
                 log.warning("pipeline: the database is not answering (%s); retrying", error)
+                done = 0
+                self._stop.wait(5 * self.poll_s)
+            except Exception:  # a bug outside any scene's stages: said, and kept trying (a
+                # thread that ended would leave the server storing scenes no one consolidates)
+                log.exception("pipeline: a pass failed; retrying")
                 done = 0
                 self._stop.wait(5 * self.poll_s)
             self._wake.wait(QUIET_S if done else self.poll_s)

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import platformdirs
-from pydantic import AfterValidator, AliasChoices, Field
+from pydantic import AfterValidator, AliasChoices, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .types.json_forms import IMAGE_LIMITS
@@ -40,7 +40,7 @@ class Settings(BaseSettings):
     db: Annotated[str, AfterValidator(_database_name)] = Field(
         default="percept_memory", description="PMEM_DB: database name")
     mongo_timeout_ms: int = Field(
-        default=5000, ge=1,
+        default=5000, ge=1, le=600_000,
         description="PMEM_MONGO_TIMEOUT_MS: how long to wait for an unreachable MongoDB before "
                     "failing (HTTP 503)",
     )
@@ -53,16 +53,16 @@ class Settings(BaseSettings):
         description="PMEM_MONGOD_PORT: loopback port of the embedded mongod",
     )
     mongod_cache_gb: float | None = Field(
-        default=None, gt=0,
+        default=None, gt=0, le=4096, allow_inf_nan=False,
         description="PMEM_MONGOD_CACHE_GB: WiredTiger cache size of the embedded mongod; "
         "unset = MongoDB's default, half of (RAM - 1 GB)",
     )
     mongod_oplog_mb: int = Field(
-        default=256, ge=32,
+        default=256, ge=32, le=1_048_576,
         description="PMEM_MONGOD_OPLOG_MB: oplog size of the embedded mongod",
     )
     gridfs_threshold: int = Field(
-        default=2048, ge=1024,
+        default=2048, ge=1024, le=2**24,
         description="PMEM_GRIDFS_THRESHOLD: binary values above this many bytes (crops, "
         "images, clouds) leave the documents queries read, for `binaries` (GridFS above "
         "255 kB); smaller ones (feature vectors) stay inline",
@@ -83,20 +83,20 @@ class Settings(BaseSettings):
         "whose pages may send POSTs to the API",
     )
     max_request_mb: float = Field(
-        default=64, gt=0,
+        default=64, gt=0, le=16_384, allow_inf_nan=False,
         description="PMEM_MAX_REQUEST_MB: largest HTTP request body accepted (413 above)",
     )
     max_image_pixels: int = Field(
-        default=IMAGE_LIMITS["max_image_pixels"], ge=1,
+        default=IMAGE_LIMITS["max_image_pixels"], ge=1, le=2**31,
         description="PMEM_MAX_IMAGE_PIXELS: largest image accepted, in pixels (checked in the "
                     "PNG/JPEG header before decoding)",
     )
     max_crop_pixels: int = Field(
-        default=IMAGE_LIMITS["max_crop_pixels"], ge=1,
+        default=IMAGE_LIMITS["max_crop_pixels"], ge=1, le=2**31,
         description="PMEM_MAX_CROP_PIXELS: largest cluster crop accepted, in pixels",
     )
     query_timeout_ms: int = Field(
-        default=2000, ge=1,
+        default=2000, ge=1, le=3_600_000,
         description="PMEM_QUERY_TIMEOUT_MS: server-side time limit of each query operation",
     )
 
@@ -113,15 +113,15 @@ class Settings(BaseSettings):
         description="PMEM_LOOKUP_AUTH: Authorization header sent to it, e.g. 'Bearer <key>'",
     )
     lookup_timeout_s: float = Field(
-        default=10.0, gt=0,
+        default=10.0, gt=0, le=3600, allow_inf_nan=False,
         description="PMEM_LOOKUP_TIMEOUT_S: longest wait for one lookup before it is retried",
     )
     lookup_retries: int = Field(
-        default=2, ge=0,
+        default=2, ge=0, le=10,
         description="PMEM_LOOKUP_RETRIES: quick retries of a failed HTTP request in one attempt",
     )
     lookup_concurrency: int = Field(
-        default=64, ge=1,
+        default=64, ge=1, le=10_000,
         description="PMEM_LOOKUP_CONCURRENCY: lookups in flight per worker process",
     )
     lookup_cache_radius: int = Field(
@@ -136,16 +136,16 @@ class Settings(BaseSettings):
         default=0, description="PMEM_SIMULATED_SEED: seed of the simulated lookup service"
     )
     job_lease_s: float = Field(
-        default=30.0, gt=0,
+        default=30.0, gt=0, le=86_400, allow_inf_nan=False,
         description="PMEM_JOB_LEASE_S: a claimed job is taken over this long after its last "
                     "heartbeat",
     )
     job_max_attempts: int = Field(
-        default=5, ge=1,
+        default=5, ge=1, le=1000,
         description="PMEM_JOB_MAX_ATTEMPTS: attempts before a job is marked failed",
     )
     job_backoff_s: float = Field(
-        default=2.0, ge=0,
+        default=2.0, ge=0, le=86_400, allow_inf_nan=False,
         description="PMEM_JOB_BACKOFF_S: wait before the first retry; doubles each attempt",
     )
     consolidator: bool = Field(
@@ -154,18 +154,18 @@ class Settings(BaseSettings):
                     "`pmem consolidate` processes run apart)",
     )
     ingest_processes: int = Field(
-        default_factory=lambda: min(os.cpu_count() or 1, 2), ge=1,
+        default_factory=lambda: min(os.cpu_count() or 1, 2), ge=1, le=64,
         description="PMEM_INGEST_PROCESSES: processes that parse, validate and encode large "
                     "JSON bodies of scenes for the web app (1: the app's own; default: 2 "
                     "where there are 2 cores; ~140 MB each)",
     )
     map_lease_s: float = Field(
-        default=30.0, gt=0,
+        default=30.0, gt=0, le=86_400, allow_inf_nan=False,
         description="PMEM_MAP_LEASE_S: a map's consolidator is taken over this long after it "
                     "last wrote",
     )
     belief_wait_s: float = Field(
-        default=10.0, ge=0, le=300,
+        default=10.0, ge=0, le=300, allow_inf_nan=False,
         description="PMEM_BELIEF_WAIT_S: longest wait of POST /api/scenes?wait=belief",
     )
     similarity_niceness: int = Field(
@@ -174,10 +174,21 @@ class Settings(BaseSettings):
                     "the similarity index current, so that it gives way to ingest",
     )
     similarity_wait_s: float = Field(
-        default=1.0, ge=0, le=60,
+        default=1.0, ge=0, le=60, allow_inf_nan=False,
         description="PMEM_SIMILARITY_WAIT_S: longest wait of a similarity search in the web "
                     "app for that thread to catch up (then it searches what is indexed)",
     )
+
+
+def settings_problems(error: ValidationError) -> str:
+    """Bad settings as one line, each named by its environment variable (the start of its
+    description), as people set it: `PMEM_MAP_LEASE_S: Input should be ...`."""
+    def problem(e: dict) -> str:
+        field = Settings.model_fields.get(str(e["loc"][0])) if e["loc"] else None
+        name = field.description.split(":")[0] if field and field.description else "settings"
+        said = e["msg"].removeprefix("Value error, ")
+        return said if said.startswith(name) else f"{name}: {said}"
+    return "; ".join(map(problem, error.errors(include_url=False, include_input=False)))
 
 
 def settings_help() -> str:

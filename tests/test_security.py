@@ -5,6 +5,7 @@ headers on every response."""
 from __future__ import annotations
 
 import json
+import re
 import time
 
 import pytest
@@ -101,6 +102,28 @@ def test_allowed_hosts_replace_the_default(store):
     assert client.get("/api/jobs").status_code == 200
     assert client.get("/api/jobs", headers={"host": "10.0.0.7:8000"}).status_code == 200
     refused(client.get("/api/jobs", headers={"host": "localhost:8000"}), 400, "localhost")
+
+
+@pytest.mark.parametrize("setting, value", [
+    ("allowed_hosts", "127.0.0.1:8939"), ("allowed_hosts", "[::1]:8000"),
+    ("allowed_hosts", "http://robot.lan"), ("allowed_origins", "robots.example"),
+    ("allowed_origins", "https://robots.example/app"),
+])
+def test_a_host_or_origin_that_could_never_match_is_refused_at_start(setting, value):
+    """Accepted before, such an entry refused every request (400) or every write (403)."""
+    said = re.escape(repr(value)) + " is not an? (host name|origin)"
+    with pytest.raises(ValidationError, match=said):
+        Settings(**{setting: value})
+
+
+def test_an_origin_is_kept_as_browsers_send_it_and_ipv6_hosts_are_names(store):
+    settings = Settings(allowed_origins="https://Robots.example/ ,http://10.0.0.7:8080",
+                        allowed_hosts="::1, robot.lan")
+    assert settings.allowed_origins == "https://Robots.example,http://10.0.0.7:8080"
+    client = TestClient(create_app(store, settings), base_url="http://robot.lan:8000")
+    response = client.post("/api/scenes", json=valid_scene(),
+                           headers={"origin": "https://robots.example"})
+    assert response.status_code == 201, response.text
 
 
 def test_a_wrong_method_gets_405_with_allow(client):

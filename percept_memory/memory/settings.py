@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import os
 from pathlib import Path
+from urllib.parse import urlsplit
 from typing import Annotated, Literal
 
 import platformdirs
@@ -20,6 +21,30 @@ def _database_name(name: str) -> str:
         raise ValueError(f"PMEM_DB {name!r} is not a MongoDB database name: 1 to 63 bytes, none of "
                          f"/ \\ . \" $ or a space")
     return name
+
+
+def _host_names(value: str | None) -> str | None:
+    """Host names as a Host header names them, any port: an entry with a port, a scheme or a
+    path would never match (every request refused), so it is refused here."""
+    for entry in filter(None, (e.strip() for e in (value or "").split(","))):
+        if "/" in entry or entry.count(":") == 1 or "]:" in entry:
+            raise ValueError(f"{entry!r} is not a host name: give names without a scheme or a "
+                             "port (any port is served), e.g. robot.local,10.0.0.5")
+    return value
+
+
+def _origins(value: str) -> str:
+    """Origins as browsers send them: scheme://host[:port], nothing after (a trailing / is
+    dropped); another form would never match."""
+    origins = []
+    for entry in filter(None, (e.strip() for e in value.split(","))):
+        parts = urlsplit(entry.removesuffix("/"))
+        if parts.scheme not in ("http", "https") or not parts.netloc or parts.path or (
+                parts.query or parts.fragment):
+            raise ValueError(f"{entry!r} is not an origin: scheme://host[:port], e.g. "
+                             "https://dashboard.example:8443")
+        origins.append(f"{parts.scheme}://{parts.netloc}")
+    return ",".join(origins)
 
 
 def default_data_dir() -> Path:
@@ -72,12 +97,12 @@ class Settings(BaseSettings):
         description="PMEM_TOKEN: write token for the HTTP API; unset = none on loopback, "
         "a generated one (printed) when serving beyond it",
     )
-    allowed_hosts: str | None = Field(
+    allowed_hosts: Annotated[str | None, AfterValidator(_host_names)] = Field(
         default=None,
         description="PMEM_ALLOWED_HOSTS: Host names served, comma-separated, any port; "
         "unset = 127.0.0.1, localhost, ::1 and the --host served on",
     )
-    allowed_origins: str = Field(
+    allowed_origins: Annotated[str, AfterValidator(_origins)] = Field(
         default="",
         description="PMEM_ALLOWED_ORIGINS: other origins (scheme://host:port, comma-separated) "
         "whose pages may send POSTs to the API",

@@ -5,8 +5,8 @@ from __future__ import annotations
 import gc
 import os
 from pathlib import Path
-from urllib.parse import urlsplit
 from typing import Annotated, Literal
+from urllib.parse import urlsplit
 
 import platformdirs
 from pydantic import AfterValidator, AliasChoices, Field, ValidationError

@@ -588,7 +588,8 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
         until = row["consolidated_until"] or "-"
         click.echo(f"{row['map']:<{width}}  consolidated until {until:<30} "
                    f"pending {row['pending']:>6}  held {row['held']:>4}"
-                   f"{'  rebuilding' if row['rebuilding'] else ''}")
+                   f"{'  rebuilding' if row['rebuilding'] else ''}"
+                   f"{'  by ' + row['consolidator'] if row['consolidator'] else ''}")
     for held in report["held"]:
         click.echo(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
                    f"{held['attempts']} attempts: {held['error']}")

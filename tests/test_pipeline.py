@@ -12,6 +12,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from datetime import UTC, datetime, timedelta
 
 import numpy as np
 import pytest
@@ -505,6 +506,15 @@ def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, 
     assert body["maps"][0]["consolidated_until_ns"] == week.scenes[5].timestamp
     page = client.get("/pipeline")
     assert page.status_code == 200 and kitchen_week.MAP in page.text
+
+    # who consolidates it: the lease's owner while the lease runs, no one once it ran out
+    for until, shown in ((timedelta(seconds=30), "worker-7"), (-timedelta(seconds=1), None)):
+        empty.db[MAPS].update_one({"_id": kitchen_week.MAP}, {"$set": {"lease": {
+            "owner": "worker-7", "until": datetime.now(UTC) + until}}})
+        assert status(empty)["maps"][0]["consolidator"] == shown
+        listed = CliRunner().invoke(main, ["pipeline"], env=env)
+        assert ("  by worker-7" in listed.stdout) == bool(shown)
+    empty.db[MAPS].update_one({"_id": kitchen_week.MAP}, {"$set": {"lease": None}})
 
     # a scene of the map held: the belief is not current, and the answer says why
     held = IngestService(empty).ingest_batch(week.scenes[6:7])[0].scene_id

@@ -620,8 +620,8 @@ def retry_held(store: MemoryStore) -> int:
 
 def status(store: MemoryStore, held_limit: int = 50) -> dict:
     """How far the belief of each map is: the newest consolidated scene's time, the scenes
-    pending and held, whether it is being rebuilt and who holds its lease; the held scenes
-    with their errors."""
+    pending and held, whether it is being rebuilt and who holds its lease (one that ran out
+    is no one's); the held scenes with their errors."""
     outbox = store.db[OUTBOX]
     counts: dict[str, dict[str, int]] = {}
     for row in outbox.aggregate([{"$group": {"_id": {"map": "$map", "held": "$held"},
@@ -629,10 +629,12 @@ def status(store: MemoryStore, held_limit: int = 50) -> dict:
         kind = "held" if row["_id"]["held"] else "pending"
         counts.setdefault(row["_id"]["map"], {})[kind] = row["n"]
     maps = {doc["_id"]: doc for doc in store.db[MAPS].find()}
-    rows = []
+    rows, now = [], utc_now()
     for name in sorted(set(maps) | set(counts)):
         doc = maps.get(name, {})
         lease = doc.get("lease") or {}
+        if lease and lease["until"] < now:  # its holder died without letting it go: no one
+            lease = {}
         watermark = doc.get("consolidated")
         rows.append({
             "map": name,

@@ -720,6 +720,18 @@ def test_each_scene_log_filter_shows_every_match_once_in_order(client, store, we
     assert seen == expected and expected
 
 
+@pytest.mark.parametrize("since", ["{ns}", "2024-03-06T09:00+01:00",
+                                   "2024-03-06T08:00:00.123456789"])
+def test_a_time_the_picker_cannot_hold_is_kept_when_filtering_again(page, url, week, since):
+    """Shown in a date and time picker, such a value was blank, and Filter dropped it."""
+    since = since.format(ns=week.scenes[5].timestamp)
+    page.goto(f"{url}/?" + urlencode({"since": since, "until": "2024-03-07T09:00"}))
+    expect(page.locator("input[name=since]")).to_have_value(since)
+    expect(page.locator("input[name=until]")).to_have_attribute("type", "datetime-local")
+    page.get_by_role("button", name="Filter").click()
+    expect(page).to_have_url(re.compile(re.escape(urlencode({"since": since}))))
+
+
 def test_scene_log_filters_are_index_backed(store):
     """Newest first without an in-memory sort, unfiltered or by any one filter."""
     for name, key in [*CHOICES.items(), ("none", None)]:

@@ -119,6 +119,14 @@ def nanoseconds_through(text: str, name: str) -> int:
 
 
 CLOCK = re.compile(r"[T ]\d\d(:\d\d)?(:\d\d)?(?:[.,](\d{1,9}))?")
+LOCAL_TIME = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d(:\d\d(\.\d{1,3})?)?$")
+
+
+def time_input_type(value: str) -> str:
+    """A time field's input type: a browser's date and time picker, or text for a value the
+    picker cannot hold (nanoseconds, a time zone, a mistake): it would show it blank, and the
+    next submit would drop the filter the page is showing."""
+    return "datetime-local" if not value or LOCAL_TIME.match(value) else "text"
 
 
 def bounded_int(text: str, name: str, low: int, high: int) -> int:

@@ -25,7 +25,15 @@ from percept_memory.queries.model import canonical_type
 
 from .facets import facet_counts, shown
 from .histogram import Bar, scene_histogram
-from .html import LIST_FIELDS, SCRIPT_CSP, PageError, nanoseconds, nanoseconds_through, page
+from .html import (
+    LIST_FIELDS,
+    SCRIPT_CSP,
+    PageError,
+    nanoseconds,
+    nanoseconds_through,
+    page,
+    time_input_type,
+)
 
 SCENES_PER_PAGE = 20
 CHOICES = {"robot": "robot", "region": "summary.regions", "annotator": "summary.annotators",
@@ -80,6 +88,7 @@ def routes(store: MemoryStore) -> APIRouter:
         return page(request, "scenes.html", {
             "scenes": scenes, "choices": choices, "older": older, "filters": filters,
             "given": given, "counts": counts, "shown": shown, "histogram": histogram,
+            "time_inputs": {name: time_input_type(filters[name]) for name in ("since", "until")},
             "bar_links": histogram and [_link(given, bar) for bar in histogram.bars],
         }, policy=SCRIPT_CSP)  # the histogram's brushing (static/brush.js)
 

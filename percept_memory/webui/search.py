@@ -12,7 +12,6 @@ and objects most frequent among the matches are offered as links with theirs (fa
 from __future__ import annotations
 
 import asyncio
-import re
 from urllib.parse import urlencode
 
 from fastapi import APIRouter, Request
@@ -30,10 +29,9 @@ from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
 from .facets import cluster_facet_counts, shown
-from .html import PageError, page, problems
+from .html import PageError, page, problems, time_input_type
 
 PAGE_SIZE = 48
-LOCAL_TIME = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d(:\d\d(\.\d{1,3})?)?$")
 VIEWS = ("grid", "list")
 HINT_SKIPPED = {"id", "source"}
 
@@ -103,12 +101,9 @@ def _form(asked: list[tuple[str, str]]) -> dict[str, list[str]]:
 
 
 def _time_inputs(asked: list[tuple[str, str]]) -> dict[str, str]:
-    """The input type of each time field: a browser's date and time picker, or text for a
-    value the picker cannot hold (nanoseconds, a time zone, a mistake), which it would
-    otherwise show blank while the page names it as the problem."""
+    """The input type of each time field (html.time_input_type)."""
     given = dict(asked)
-    return {name: "text" if name in given and not LOCAL_TIME.match(given[name])
-            else "datetime-local" for name in ("after", "before")}
+    return {name: time_input_type(given.get(name, "")) for name in ("after", "before")}
 
 
 def _links(asked: list[tuple[str, str]], view: str) -> dict[str, str]:

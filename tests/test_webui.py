@@ -395,6 +395,13 @@ def test_search_form_asks_for_the_k_nearest(page, url, store):
     expect(hits).to_have_count(5)
     assert [hits.nth(i).get_attribute("data-cluster") for i in range(5)] == \
         [str(h.id) for h in expected]
+    # a ranking is not exported (the form's export was a 422): said, with what is
+    expect(page.locator("form.export")).to_have_count(0)
+    expect(page.locator("p.note", has_text="are not exported")).to_have_count(1)
+    page.goto(url + "/search?region=shelf&k=5")  # k alone changes nothing: nor the export's
+    with page.expect_download() as download:
+        page.get_by_role("button", name="Download zip").click()
+    assert download.value.suggested_filename.endswith(".zip")
 
 
 def test_scene_image_with_numbered_cluster_boxes(page, url, sample):

@@ -140,10 +140,13 @@ def _narrowing(store: MemoryStore, asked: list[tuple[str, str]], view: str,
     return facets
 
 
-def _exported(asked: list[tuple[str, str]]) -> list[tuple[str, str]]:
-    """The filter of the search, for the export form: everything but paging and order (an
-    export takes every match, oldest first)."""
-    return [(k, v) for k, v in asked if k not in ("cursor", "sort", "limit")]
+def _exported(asked: list[tuple[str, str]]) -> list[tuple[str, str]] | None:
+    """The filter of the search, for the export form: everything but paging, order and k (an
+    export takes every match, oldest first); None for the k nearest to a point, a ranking
+    an export does not take."""
+    if any(k == "near" for k, _ in asked):
+        return None
+    return [(k, v) for k, v in asked if k not in ("cursor", "sort", "limit", "k")]
 
 
 def _choices(store: MemoryStore) -> dict:

@@ -628,6 +628,8 @@ def test_every_page_sends_a_content_security_policy(client, week, hostile):
     ("/?before=99999999999999999999-0123456789abcdef01234567", 422), ("/?before=-", 422),
     ("/?type=nonsense", 422), ("/?type=pm.scene.Scene", 422), ("/?type=pm.annotation.LogLin", 422),
     ("/?region=shelf&since=soon", 422),
+    ("/catalogue?limit=abc", 422), ("/catalogue?limit=0", 422), ("/catalogue?limit=1001", 422),
+    (f"/playback?object={ObjectId()}", 404),
 ])
 def test_bad_urls_get_a_page_naming_the_problem(client, path, status):
     response = client.get(path)

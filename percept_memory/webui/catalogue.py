@@ -16,7 +16,7 @@ from percept_memory.memory.store import MemoryStore
 from percept_memory.queries import catalogue
 
 from .errors import READ_ERRORS
-from .html import page
+from .html import bounded_int, page
 
 DRAWING_PX = 72
 CHANGES_SHOWN = 30
@@ -48,9 +48,9 @@ def catalogue_router(store: MemoryStore) -> APIRouter:
     router.include_router(_api(store))
 
     @router.get("/catalogue", include_in_schema=False, response_class=HTMLResponse)
-    async def catalogue_page(request: Request, map: str | None = None,
-                             limit: Annotated[int, Query(ge=1, le=1000)] = 100
+    async def catalogue_page(request: Request, map: str | None = None, limit: str = "100"
                              ) -> HTMLResponse:
+        limit = bounded_int(limit, "limit", 1, 1000)  # (a page's own 422, not the API's JSON)
         found, changes = await run_in_threadpool(
             lambda: (catalogue.entries(store, map or None, limit),
                      catalogue.history(store, map or None, CHANGES_SHOWN)))

@@ -56,6 +56,9 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
         chosen = robot or await run_in_threadpool(_newest_robot, store)
         if chosen not in robots:
             raise PageError(404, f"no scenes of a robot named {chosen!r}")
+        if followed and not await run_in_threadpool(store.objects.find_one, {"_id": followed},
+                                                    {"_id": 1}):
+            raise PageError(404, f"no object {followed} to follow")
         try:
             asked = Playback(robot=chosen, map=map or None, t=moment)
         except ValidationError as error:

@@ -167,6 +167,12 @@ def test_the_window_counts_scenes_up_to_a_moment(client):
     earlier = report(client, scenes=3, before=EIGHT + 90 * 60 * 10**9)
     assert earlier["scenes"] == 3 and (earlier["last"] - EIGHT) // 60 // 10**9 == 80
     assert {h["annotator"] for h in earlier["hours"]} == {"Fast", "Flaky"}
+    # the page leads to the scenes before its window only when some may be (it led on from a
+    # window that held the oldest scene, to an empty page)
+    full = client.get("/annotators", params={"robot": "lab", "scenes": 3})
+    assert 'rel="prev">the 3 before' in full.text
+    oldest = client.get("/annotators", params={"robot": "lab", "scenes": 1000})
+    assert oldest.status_code == 200 and 'rel="prev"' not in oldest.text
 
 
 @pytest.mark.parametrize("query", [{"robot": "lab"}, {"scenes": 10, "before": EIGHT + HOUR}])

@@ -44,8 +44,9 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             "cell_link": lambda comparison, count: "/annotators/clusters?" + urlencode(
                 _params(fixed, annotator=comparison.annotator, reference=comparison.reference,
                         said=count.said, expected=count.expected)),
+            # (a window not filled holds the oldest scene: nothing is earlier)
             "earlier": "/annotators?" + urlencode(_params(window, before=report.first - 1))
-            if report.first else None})
+            if report.first and report.scenes >= window.scenes else None})
 
     @router.get("/annotators/clusters")
     async def cell_page(request: Request) -> HTMLResponse:

@@ -14,7 +14,7 @@ from playwright.sync_api import expect, sync_playwright
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory import curation
-from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.schema import MAPS, OBJECTS
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Classification, GroundTruth
 from percept_memory.webui import curation as curation_page
@@ -171,7 +171,7 @@ def watched(browser):
 def in_chromium(memory, settings: Settings | None = None):
     """The app served on the memory and a Chromium tab for it: (tab, url). Its pages must keep
     their own Content-Security-Policy."""
-    app = create_app(memory, settings or Settings(consolidator=False))
+    app = create_app(memory, settings or Settings())  # (its consolidator: as deployed)
     with served(app) as url, sync_playwright() as playwright:
         browser = launch(playwright)
         tab, blocked = watched(browser)
@@ -272,6 +272,8 @@ def test_two_objects_are_merged_over_http_and_a_bad_merge_is_refused(client, mem
 def test_an_object_is_merged_from_its_page_by_keyboard(memory):
     cluster = memory.clusters.find_one({"annotations.author": {"$exists": False},
                                         "object_id": {"$ne": None}}, sort=[("_id", -1)])
+    this = memory.db[OBJECTS].find_one({"_id": cluster["object_id"]})
+    this_last, cluster_count = this["last_cluster"], this["observations"]
     with in_chromium(memory) as (tab, url):
         tab.goto(f"{url}/objects/{cluster['object_id']}")
         tab.locator("#author").fill("ana")
@@ -279,14 +281,31 @@ def test_an_object_is_merged_from_its_page_by_keyboard(memory):
         choice.focus()
         tab.keyboard.press("ArrowDown")
         other = choice.input_value()
+        other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
         tab.keyboard.press("Tab")  # to Merge
-        with tab.expect_navigation():
+        with tab.expect_navigation(timeout=60_000):
             tab.keyboard.press("Enter")
+        # reloaded once the map's belief was rebuilt with it: the object as merged (it
+        # reloaded at once, showing the object as it was, with no word of the rebuild)
+        shown = int(tab.locator("dd.observations").text_content())
+        expect(tab.locator("p.note", has_text="being rebuilt")).to_have_count(0)
+        now = memory.db[OBJECTS].find_one({"_id": ObjectId(tab.url.rsplit("/", 1)[1])})
+        assert shown == now["observations"] and now["observations"] > cluster_count
     (row,) = curation.audit(memory, 1)
     assert row["kind"] == "merge" and row["author"] == "ana"
-    other_last = memory.db[OBJECTS].find_one({"_id": ObjectId(other)})["last_cluster"]
-    this_last = memory.db[OBJECTS].find_one({"_id": cluster["object_id"]})["last_cluster"]
     assert {row["cluster_id"], row["other"]} == {other_last, this_last}
+
+
+def test_an_object_page_says_when_its_maps_belief_is_being_rebuilt(client, memory):
+    believed = memory.db[OBJECTS].find_one()
+    assert "being rebuilt" not in client.get(f"/objects/{believed['_id']}").text
+    maps = memory.db[MAPS]
+    maps.update_one({"_id": believed["map"]}, {"$set": {"catch_up": [1, ObjectId()]}})
+    try:
+        assert f"map {believed['map']} is being rebuilt" in client.get(
+            f"/objects/{believed['_id']}").text
+    finally:
+        maps.update_one({"_id": believed["map"]}, {"$set": {"catch_up": None}})
 
 
 def often_seen(store, skip: int = 0) -> dict:

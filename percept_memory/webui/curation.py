@@ -85,8 +85,19 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
         authorise(request, settings.token)
 
     async def corrected(make, *args) -> dict[str, Any]:
+        """The correction made, and the map whose belief follows it (a merge, split, reject
+        or undo has it rebuilt: the page waits for that map before it shows the result)."""
         made = await correcting(make, *args)
-        return {"correction": described(made)}
+        return {"correction": described(made), "map": await run_in_threadpool(map_of, args[0])}
+
+    def map_of(key: ObjectId) -> str | None:
+        """The map of the object or the cluster corrected."""
+        believed = objects.find_one({"_id": key}, {"map": 1})
+        if believed is not None:
+            return believed.get("map")
+        cluster = store.clusters.find_one({"_id": key}, {"scene_id": 1})
+        scene = cluster and store.scenes.find_one({"_id": cluster["scene_id"]}, {"map": 1})
+        return scene and scene.get("map")
 
     async def correcting(make, *args):
         try:

@@ -43,7 +43,7 @@ async function send(event) {
     refused = null;
     if (secret) sessionStorage.setItem(TOKEN, secret);
     status.textContent = "Saved.";
-    done(form);
+    await done(form, (await answer.json()).map);
     return;
   }
   const {error} = await answer.json();
@@ -58,12 +58,31 @@ async function send(event) {
   }
 }
 
-function done(form) {
+async function done(form, map) {
   if (form.dataset.then !== "next") {
+    await rebuilt(map, form.querySelector("[role=status]"));
     location.reload();
     return;
   }
   const row = form.closest("tr, li");
   row?.classList.add("corrected");
   row?.nextElementSibling?.querySelector("form.correct input, form.correct button")?.focus();
+}
+
+// A correction that changes who is who (merge, split, reject, undo) has its map's belief
+// rebuilt by the memory pipeline: the map is marked, its scenes queued again and gone through.
+// The page reloads once the map (the answer names it) has none left (at most REBUILD_WAIT_MS;
+// after that the page itself says it is still being rebuilt), not before, when it would show
+// the object as it was.
+const REBUILD_WAIT_MS = 30000, REBUILD_POLL_MS = 300;
+async function rebuilt(name, status) {
+  const until = Date.now() + REBUILD_WAIT_MS;
+  while (name && Date.now() < until) {
+    const answer = await fetch("/api/pipeline");
+    if (!answer.ok) return;
+    const map = (await answer.json()).maps.find((row) => row.map === name);
+    if (!map || !(map.rebuilding || map.pending)) return;
+    status.textContent = "Saved. The belief is being rebuilt with it…";
+    await new Promise((resolve) => setTimeout(resolve, REBUILD_POLL_MS));
+  }
 }

@@ -18,6 +18,7 @@ from percept_memory.memory.schema import MAPS, OBJECTS
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Classification, GroundTruth
 from percept_memory.webui import curation as curation_page
+from percept_memory.webui import render
 from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated, served
@@ -294,6 +295,14 @@ def test_an_object_is_merged_from_its_page_by_keyboard(memory):
     (row,) = curation.audit(memory, 1)
     assert row["kind"] == "merge" and row["author"] == "ana"
     assert {row["cluster_id"], row["other"]} == {other_last, this_last}
+
+
+def test_a_corrections_time_shows_as_a_time_on_the_cluster_page(client, memory):
+    (doc,) = clusters_of_objects(memory, 1, skip=60)
+    made = curation.relabel(memory, doc["_id"], "blue mug", author="ana")
+    text = client.get(f"/clusters/{doc['_id']}").text
+    assert str(made.time) not in text  # (its nanoseconds since 1970, before)
+    assert f"<td>{render.time_of(made.time)}</td>" in text
 
 
 def test_an_object_page_says_when_its_maps_belief_is_being_rebuilt(client, memory):

@@ -16,9 +16,10 @@ from urllib.parse import urlsplit
 
 import numpy as np
 from pydantic import BaseModel
+from pydantic.fields import FieldInfo
 
 from percept_memory.converters import Unknown, name_of
-from percept_memory.memory.types import LogLine
+from percept_memory.memory.types import LogLine, is_timestamp
 
 CHART_WIDTH, CHART_HEIGHT, CHART_POINTS = 240, 48, 120
 SHARE_WORDS = ("confidence", "probability", "ratio", "score")
@@ -72,7 +73,8 @@ def shown_fields(value: Any) -> list[Shown]:
     elif isinstance(value, Mapping):
         items = ((str(k), v) for k, v in value.items())
     else:
-        items = ((name, getattr(value, name)) for name in type(value).model_fields)
+        items = ((name, _timed(getattr(value, name), info))
+                 for name, info in type(value).model_fields.items())
     return [shown(name, field) for name, field in items
             if name not in HIDDEN_FIELDS and not _empty(field)]
 
@@ -134,6 +136,11 @@ def time_of(value: datetime | int | None) -> str:
     if isinstance(value, int):
         value = datetime.fromtimestamp(value / 1e9, UTC)
     return value.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
+
+
+def _timed(value: Any, field: FieldInfo) -> Any:
+    """A Timestamp field's value as a time (people read no nanoseconds since 1970)."""
+    return time_of(value) if value is not None and is_timestamp(field) else value
 
 
 def _empty(value: Any) -> bool:

@@ -28,6 +28,7 @@ from .base import (
     Model,
     Timestamp,
     datetime_from_timestamp,
+    is_timestamp,
     iso_from_timestamp,
     stored_type,
     timestamp_from_datetime,
@@ -47,6 +48,6 @@ __all__ = [
     "PointCloud", "PointCluster", "Pose", "Product", "Quaternion", "Rejection", "Relabel",
     "Relation", "SameObject", "Scene", "SemanticColor", "Shape", "SpatialVolume", "Text",
     "Timestamp", "Tracking", "Transform", "Undo", "Unknown", "Vec3", "VisualWords", "WebLookup",
-    "datetime_from_timestamp", "iso_from_timestamp", "stored_type", "timestamp_from_datetime",
-    "timestamp_from_iso",
+    "datetime_from_timestamp", "is_timestamp", "iso_from_timestamp", "stored_type",
+    "timestamp_from_datetime", "timestamp_from_iso",
 ]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import typing
 from datetime import UTC, datetime
 from typing import Annotated, Any
 
@@ -25,6 +26,7 @@ from pydantic import (
     model_serializer,
     model_validator,
 )
+from pydantic.fields import FieldInfo
 
 from percept_memory.converters import (
     Typed,
@@ -79,6 +81,11 @@ Timestamp = Annotated[
     Field(ge=0, le=MAX_TIMESTAMP, description="nanoseconds since the Unix epoch, UTC"),
 ]
 """Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it (1970 to 2262)."""
+
+
+def is_timestamp(field: FieldInfo) -> bool:
+    """Whether a model's field is a Timestamp (shown as a time, not as its nanoseconds)."""
+    return typing.get_args(Timestamp)[1] in field.metadata
 
 
 def timestamp_from_datetime(moment: datetime) -> int:

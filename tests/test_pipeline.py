@@ -55,6 +55,7 @@ from percept_memory.memory.types import (
     WebLookup,
 )
 from percept_memory.queries.engine import QueryEngine
+from percept_memory.webui.render import time_of
 
 from .conftest import LOCAL, ingest_consolidated
 
@@ -506,6 +507,7 @@ def test_the_cli_and_the_api_show_how_far_the_belief_is(empty, week, mongo_uri, 
     assert body["maps"][0]["consolidated_until_ns"] == week.scenes[5].timestamp
     page = client.get("/pipeline")
     assert page.status_code == 200 and kitchen_week.MAP in page.text
+    assert time_of(week.scenes[5].timestamp) in page.text  # as every page shows a time
 
     # who consolidates it: the lease's owner while the lease runs, no one once it ran out
     for until, shown in ((timedelta(seconds=30), "worker-7"), (-timedelta(seconds=1), None)):

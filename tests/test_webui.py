@@ -854,6 +854,8 @@ def test_enrichment_page_shows_the_queue_and_the_cache(client):
     assert '<td class="num done">3</td>' in body and '<td class="num failed">1</td>' in body
     assert "66.7 %" in body and "(2 of the latest 3 lookups)" in body
     assert f"HTTP 500: {escape(HOSTILE)}" in body
+    assert re.search(r"<td>\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d{3} UTC</td>", body)  # as everywhere
+    assert "+00:00" not in body
 
 
 def test_only_the_live_page_may_run_scripts(client):

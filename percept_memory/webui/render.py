@@ -129,12 +129,15 @@ def log_by_annotator(log: list[LogLine]) -> list[tuple[str, float, list[LogLine]
             for source, lines in groups.items()]
 
 
-def time_of(value: datetime | int | None) -> str:
-    """A UTC time to the millisecond; ints are nanoseconds since the epoch."""
+def time_of(value: datetime | int | str | None) -> str:
+    """A UTC time to the millisecond; ints are nanoseconds since the epoch, strings ISO 8601
+    (as the API gives them)."""
     if value is None:
         return ""
     if isinstance(value, int):
         value = datetime.fromtimestamp(value / 1e9, UTC)
+    elif isinstance(value, str):
+        value = datetime.fromisoformat(value)
     return value.astimezone(UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
 
 

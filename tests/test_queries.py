@@ -367,6 +367,23 @@ def test_where_is_ranks_present_before_hidden_before_gone_then_recent_then_seen_
     assert {b.match for b in found} == {0.5}  # "the" names none of them
 
 
+def test_where_is_ranks_an_exact_name_before_a_longer_one(empty_engine):
+    """"cup" found the present "cup eco orange" of a 2016 dump before the cups of the week:
+    both match the word, but only one is called just that."""
+    store, engine = empty_engine
+
+    def named(names: list[str], state: str, last_seen: int) -> dict:
+        return {"_id": ObjectId(), "state": state, "observations": 3, "first_seen": 0,
+                "last_seen": last_seen, "names": names, "name": names[0],
+                "label_weights": dict.fromkeys(names, 1.0)}
+
+    store.db.objects.insert_many([named(["cup eco orange"], "present", 900),
+                                  named(["cup"], "hidden", 500),
+                                  named(["mug", "cup"], "hidden", 400)])
+    store.db.labels.insert_one({"_id": "cup eco orange", "words": ["cup", "eco", "orange"]})
+    assert [b.name for b in engine.where_is("cup")] == ["cup", "mug", "cup eco orange"]
+
+
 def test_changes_between_two_looks_contain_every_true_change(engine, kitchen):
     """Between consecutive looks at a region: every object truly put there is reported
     appeared, every one truly taken away disappeared; anything more is an identity split

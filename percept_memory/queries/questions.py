@@ -55,8 +55,9 @@ FULL_NAME_SHARE = 0.25  # of the top name's weight: a name that heavy names the 
 def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     """The objects X stands for, best first, with how well they match: an object id, a
     cluster id (the object it is believed to be), or text matched against the objects' names
-    (misspellings tolerated); ties go to present objects before hidden ones before gone ones,
-    then to the most recently seen, then to the one seen most often."""
+    (misspellings tolerated); ties go to the objects whose name the words make up most of,
+    then to present objects before hidden ones before gone ones, then to the most recently
+    seen, then to the one seen most often."""
     if ObjectId.is_valid(x):
         return [((yield from _by_id(ObjectId(x))), 1.0)]
     query_words = tuple(dict.fromkeys(words(x)))
@@ -68,9 +69,18 @@ def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     names = sorted({*terms, *(doc["_id"] for doc in labels)})  # a one-word name is its word
     objects = yield Find(OBJECTS, {"names": {"$in": names}}, limit=MAX_CANDIDATES)
     scored = [(o, word_score(expansions, name_words(o)) / len(query_words)) for o in objects]
-    scored.sort(key=lambda s: (-s[1], STATE_ORDER.get(s[0].get("state"), 3),
+    scored.sort(key=lambda s: (-s[1], -named_by(s[0], set(terms)),
+                               STATE_ORDER.get(s[0].get("state"), 3),
                                -(s[0].get("last_seen") or 0), -s[0].get("observations", 0)))
     return scored[:limit]
+
+
+def named_by(o: dict, terms: set[str]) -> float:
+    """How much of one of the object's names the words asked make up: "cup" is all of the
+    name of a cup, a third of "cup eco orange" (a tie-break after the match: the exact name
+    first; an object called heinz and ketchup is all "ketchup" too)."""
+    return max((sum(word in terms for word in name) / len(name)
+                for name in map(words, o.get("names") or []) if name), default=0.0)
 
 
 def name_words(o: dict) -> dict[str, float]:

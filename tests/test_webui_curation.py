@@ -14,7 +14,7 @@ from playwright.sync_api import expect, sync_playwright
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import memory_pipeline
 from percept_memory.memory import curation
-from percept_memory.memory.schema import MAPS, OBJECTS
+from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.types import Classification, GroundTruth
 from percept_memory.webui import curation as curation_page
@@ -295,6 +295,18 @@ def test_an_object_is_merged_from_its_page_by_keyboard(memory):
     (row,) = curation.audit(memory, 1)
     assert row["kind"] == "merge" and row["author"] == "ana"
     assert {row["cluster_id"], row["other"]} == {other_last, this_last}
+
+
+def test_objects_seen_beside_one_are_not_offered_to_merge_it_with(memory):
+    """Such a merge is refused (two observations of one scene are two objects): offered, a
+    person's choice met a 422."""
+    for believed in memory.db[OBJECTS].find({"observations": {"$gte": 3}}):
+        history = list(memory.db[EVENTS].find({"object_id": believed["_id"]}))
+        offered = {o["_id"] for o in curation_page.merge_candidates(memory, believed, history)}
+        scenes = {e["scene_id"] for e in history if e.get("cluster_id")}
+        beside = set(memory.db[EVENTS].distinct("object_id", {
+            "scene_id": {"$in": list(scenes)}, "cluster_id": {"$ne": None}}))
+        assert not offered & beside, believed["name"]
 
 
 def test_a_corrections_time_shows_as_a_time_on_the_cluster_page(client, memory):

@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from percept_memory.memory import curation
 from percept_memory.memory.errors import NotFound
-from percept_memory.memory.schema import OBJECTS
+from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.settings import Settings
 from percept_memory.memory.store import MemoryStore
@@ -195,7 +195,7 @@ def routes(store: MemoryStore, settings: Settings) -> APIRouter:
 def merge_candidates(store: MemoryStore, believed: dict, history: list[dict]) -> list[dict]:
     """The objects of the object's map a person may find it is one with: those identity
     weighed it against (its events' alternatives) and those of its names (the `names`
-    index), at most MERGE_CANDIDATES."""
+    index), never seen in one scene with it, at most MERGE_CANDIDATES."""
     weighed = {a["object_id"] for e in history for a in e.get("alternatives", [])
                if a.get("object_id") not in (None, believed["_id"])}
     found = store.db[OBJECTS].find({"_id": {"$in": list(weighed)}}, {"name": 1}).limit(
@@ -204,7 +204,15 @@ def merge_candidates(store: MemoryStore, believed: dict, history: list[dict]) ->
                                     "map": believed.get("map"), "_id": {"$ne": believed["_id"]}},
                                    {"name": 1}).limit(MERGE_CANDIDATES)
     unique = {o["_id"]: o for o in [*found, *alike]}
-    return list(unique.values())[:MERGE_CANDIDATES]
+    # not those seen beside it in a scene: two observations of one scene are two objects
+    # (a merge of them is refused)
+    events = store.db[EVENTS]
+    scenes = events.distinct("scene_id", {"object_id": believed["_id"],
+                                          "cluster_id": {"$ne": None}})
+    beside = set(events.distinct("object_id", {"scene_id": {"$in": scenes},
+                                               "object_id": {"$in": list(unique)},
+                                               "cluster_id": {"$ne": None}}))
+    return [o for key, o in unique.items() if key not in beside][:MERGE_CANDIDATES]
 
 
 def versus_truth(cluster: Cluster) -> list[dict[str, Any]]:

@@ -245,6 +245,12 @@ def test_a_batch_that_fails_leaves_nothing(store, kitchen_rgb):
     with pytest.raises(DuplicateId):
         store.put_scenes(batch)
     assert snapshot(store) == before
+    # one new id given to clusters of two scenes of the write: none stored with it
+    within = [a_scene(kitchen_rgb, clusters=1, seed=24), a_scene(kitchen_rgb, clusters=1, seed=25)]
+    within[0].clusters[0].id = within[1].clusters[0].id = ObjectId()
+    with pytest.raises(DuplicateId, match="another document, stored or earlier in this write"):
+        store.put_scenes(within)
+    assert snapshot(store) == before
 
 
 def test_clusters_sharing_a_big_blob_each_read_back(store):

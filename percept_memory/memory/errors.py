@@ -40,7 +40,7 @@ def require_replica_set(hello: dict) -> None:
 
 
 class DuplicateId(StoreError):
-    """An id in the write is already used by another stored document."""
+    """An id in the write is already used by another document (stored, or in the write)."""
 
 
 def duplicate_key(error: Exception) -> dict | None:

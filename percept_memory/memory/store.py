@@ -198,7 +198,8 @@ class StoreBase:
     @staticmethod
     def _duplicate(error: Exception) -> DuplicateId:
         return DuplicateId(
-            f"not stored: {duplicate_key(error)} is already used by another stored document; "
+            f"not stored: {duplicate_key(error)} is already used by another document, stored "
+            "or earlier in this write; "
             "give new objects no id (ids are assigned on store)"
         )
 

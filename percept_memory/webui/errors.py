@@ -69,8 +69,8 @@ MEANINGS = {
     401: "this server needs a write token (Authorization: Bearer <token>)",
     403: "the write token is wrong, or the request comes from a page of another origin",
     404: "no such object, cluster or scene",
-    409: "an id in the body is already used by another stored document, or the robot has "
-         "another scene stored at the timestamp",
+    409: "an id in the body is already used by another document (stored, or earlier in the "
+         "body), or the robot has another scene stored at the timestamp",
     413: "the body, or a value in it, is over a limit",
     415: "the body is not Content-Type: application/json",
     422: "the request is not valid: `problems` names each field and what is wrong",

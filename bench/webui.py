@@ -200,6 +200,8 @@ def playback(count: int, repeat: int) -> dict:
         documents = [store.scenes.find_one({"_id": s.id}) for s in (fine, failed)]
         store.scenes.delete_many({})
         followed = ObjectId()
+        store.db.objects.insert_one({"_id": followed, "map": "site", "name": "followed",
+                                     "state": "present"})
         for start in range(0, count, 10_000):
             scenes = [{**documents[i % 1000 == 999], "_id": ObjectId(),
                        "timestamp": STAMP + i * step}

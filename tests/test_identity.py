@@ -150,6 +150,18 @@ def test_an_object_that_looks_nothing_like_it_was_not_moved_here():
     assert all(a.probability < 1e-3 for a in decision.alternatives[1:])
 
 
+def test_a_lookalike_beside_the_one_that_stayed_is_surely_new():
+    """The confidence is given what the scene's other observations are: the known cup stayed,
+    so the second cup is new (its own row alone made it the cup moved, and the right
+    decision came out at 0.0003)."""
+    before = [known("cup", 0.0, 0.0, cup())]
+    stayed, beside = resolve([obs("a", 0.0, 0.0, cup()), obs("b", 0.4, 0.0, cup())], before,
+                             DEFAULTS)[:2]
+    assert (stayed.object, stayed.explanation, beside.explanation) == ("cup", STAY, APPEAR)
+    assert beside.probability > 0.99
+    assert {a.object for a in beside.alternatives} == {None}  # the cup is the other one
+
+
 def test_of_two_lookalikes_the_one_seen_last_is_the_one_moved_here():
     """One object remembered twice: both ids have its look. Moved again, it is the id seen
     last, not a coin flip."""

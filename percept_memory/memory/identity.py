@@ -603,8 +603,10 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
 
     decisions = []
     matched: set[int] = set()
+    taken = {j: i for i, j in assigned.items()}
     for i, observation in enumerate(new):
-        alternatives = _alternatives(table[i], known, params.prior_appear, gone)
+        alternatives = _alternatives(table[i], known, params.prior_appear, gone,
+                                     {j for j, by in taken.items() if by != i})
         j = assigned.get(i)
         if j is None:
             decisions.append(Decision(observation.key, None, Explanation.APPEAR,
@@ -740,14 +742,17 @@ def _assign(likelihood: np.ndarray, appear: float, gone: list[float]) -> dict[in
 
 
 def _alternatives(row: list[dict], known: Sequence[Known], appear: float,
-                  gone: list[float]) -> list[Alternative]:
-    """Every way to explain one new observation, with normalised probabilities, best first.
-    Weighted as the assignment weighs them: being an object in view also spares that object
-    the unlikely "it is gone"."""
+                  gone: list[float], taken: set[int]) -> list[Alternative]:
+    """Every way to explain one new observation, with normalised probabilities, best first,
+    given what the scene's other observations are (`taken`: the known objects they were
+    found to be are none of this one's ways: a bottle seen beside the one that stayed is
+    not that one moved, however alike). Weighted as the assignment weighs them: being an
+    object in view also spares that object the unlikely "it is gone"."""
     options = [Alternative(None, Explanation.APPEAR, appear)]
-    for ways, candidate, unmatched in zip(row, known, gone, strict=True):
-        options += [Alternative(candidate.key, e, value / unmatched)
-                    for e, value in ways.items() if value]
+    for j, (ways, candidate, unmatched) in enumerate(zip(row, known, gone, strict=True)):
+        if j not in taken:
+            options += [Alternative(candidate.key, e, value / unmatched)
+                        for e, value in ways.items() if value]
     total = sum(o.probability for o in options)
     for option in options:
         option.probability /= total

@@ -382,6 +382,14 @@ def test_where_is_ranks_an_exact_name_before_a_longer_one(empty_engine):
                                   named(["mug", "cup"], "hidden", 400)])
     store.db.labels.insert_one({"_id": "cup eco orange", "words": ["cup", "eco", "orange"]})
     assert [b.name for b in engine.where_is("cup")] == ["cup", "mug", "cup eco orange"]
+    # in one map: a robot asking at home is not answered with another site's cup
+    store.db.objects.update_many({"name": "cup eco orange"}, {"$set": {"map": "lab"}})
+    store.db.objects.update_many({"name": {"$ne": "cup eco orange"}}, {"$set": {"map": "home"}})
+    assert [b.name for b in engine.where_is("cup", map="lab")] == ["cup eco orange"]
+    (lab_cup,) = engine.where_is("cup", map="lab")
+    assert engine.last_seen(str(lab_cup.object_id), map="lab")
+    with pytest.raises(NotFound, match="in map 'home'.*it is in 'lab'"):
+        engine.where_was(str(lab_cup.object_id), map="home")
 
 
 def test_changes_between_two_looks_contain_every_true_change(engine, kitchen):

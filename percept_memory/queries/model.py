@@ -468,6 +468,7 @@ class About(Strict):
     x: Subject = Field(description="text, object id or cluster id")
     limit: Annotated[int, Field(ge=1, le=MAX_ANSWERS)] = Field(
         default=5, description="how many candidate objects, best first")
+    map: Name | None = Field(default=None, description="the map (default: every map)")
 
 
 class Window(Strict):

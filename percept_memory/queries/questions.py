@@ -52,14 +52,18 @@ FULL_NAME_SHARE = 0.25  # of the top name's weight: a name that heavy names the 
 # --- which objects a question is about -------------------------------------------------------
 
 
-def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
-    """The objects X stands for, best first, with how well they match: an object id, a
-    cluster id (the object it is believed to be), or text matched against the objects' names
-    (misspellings tolerated); ties go to the objects whose name the words make up most of,
-    then to present objects before hidden ones before gone ones, then to the most recently
-    seen, then to the one seen most often."""
+def resolve(x: str, limit: int, map_name: str | None = None
+            ) -> Plan[list[tuple[dict, float]]]:
+    """The objects X stands for (in one map, if given), best first, with how well they
+    match: an object id, a cluster id (the object it is believed to be), or text matched
+    against the objects' names (misspellings tolerated); ties go to the objects whose name
+    the words make up most of, then to present objects before hidden ones before gone ones,
+    then to the most recently seen, then to the one seen most often."""
     if ObjectId.is_valid(x):
-        return [((yield from _by_id(ObjectId(x))), 1.0)]
+        found = yield from _by_id(ObjectId(x))
+        if map_name is not None and found.get("map") != map_name:
+            raise NotFound("object", f"{x} in map {map_name!r}", f"it is in {found.get('map')!r}")
+        return [(found, 1.0)]
     query_words = tuple(dict.fromkeys(words(x)))
     if not query_words:
         raise QueryError(f"{x!r} names nothing: give words, an object id or a cluster id")
@@ -67,7 +71,8 @@ def resolve(x: str, limit: int) -> Plan[list[tuple[dict, float]]]:
     terms = all_terms(expansions)
     labels = yield Find(LABELS, {"words": {"$in": terms}}, {"_id": 1}, limit=MAX_LABELS)
     names = sorted({*terms, *(doc["_id"] for doc in labels)})  # a one-word name is its word
-    objects = yield Find(OBJECTS, {"names": {"$in": names}}, limit=MAX_CANDIDATES)
+    in_map = {} if map_name is None else {"map": map_name}
+    objects = yield Find(OBJECTS, {"names": {"$in": names}, **in_map}, limit=MAX_CANDIDATES)
     scored = [(o, word_score(expansions, name_words(o)) / len(query_words)) for o in objects]
     scored.sort(key=lambda s: (-s[1], -named_by(s[0], set(terms)),
                                STATE_ORDER.get(s[0].get("state"), 3),
@@ -129,7 +134,7 @@ def where_is(q: About) -> Plan[list[Belief]]:
     """What the memory believes about the objects X names now: state (present, hidden,
     disappeared), position, region, last seen, the confidence of its last explanation and
     the observations that are the evidence."""
-    found = yield from resolve(q.x, q.limit)
+    found = yield from resolve(q.x, q.limit, q.map)
     last = yield from latest_events({"$in": [o["_id"] for o, _ in found]}, NOW)
     confidence = {e["object_id"]: e.get("probability") for e in last}
     out = []
@@ -142,7 +147,7 @@ def where_is(q: About) -> Plan[list[Belief]]:
 
 def last_seen(q: About) -> Plan[list[Sighting]]:
     """When and where the objects X names were last observed, most recent first."""
-    found = yield from resolve(q.x, q.limit)
+    found = yield from resolve(q.x, q.limit, q.map)
     sightings = [Sighting(object_id=o["_id"], name=o.get("name"), time=o["last_seen"],
                           region=o.get("region"), position=o.get("position"),
                           cluster_id=o.get("last_cluster"), scene_id=o.get("last_scene"),
@@ -155,7 +160,7 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
     """The places each object X names was at, with the times, oldest first; within a time
     window, those it was at during it, each whole (its stay begun before the window keeps its
     start and its sightings)."""
-    found = yield from resolve(q.x, q.limit)
+    found = yield from resolve(q.x, q.limit, q.map)
     ids = [o["_id"] for o, _ in found]
     upto = {"time": time_window(None, q.before)} if q.before is not None else {}
     events = yield Find(EVENTS, {"object_id": {"$in": ids}, **upto}, STAY_FIELDS,

@@ -237,7 +237,7 @@ def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own
     in one command and gives it back in the batch's own transaction."""
     monkeypatch.setattr("percept_memory.memory.pipeline.WAIT_POLL_S", 5.0)
     commands = waited_for(mongo_uri, empty, week, threaded=True)
-    assert outbox_asks(commands) == {}
+    assert outbox_asks(commands) == {("find", OUTBOX): 5}  # only: is a scene of its map held?
     assert commands.seen["pmem-pipeline", "distinct", OUTBOX] == 0
     assert commands.seen["pmem-pipeline", "find", MAPS] == 0  # (maps to rebuild)
     lease = Counter({(name, target): n for (thread, name, target), n in commands.seen.items()
@@ -259,9 +259,10 @@ def test_a_scene_waited_for_costs_no_polling_and_no_lease_round_trips_of_its_own
 def test_a_scene_the_caller_consolidates_itself_is_asked_about_once(mongo_uri, empty, week):
     """The Python API's path, no consolidator thread: the caller works on its scene and knows
     by its own commit that it went through, so MongoDB is asked once whether it is pending
-    (then it is read from the outbox to be worked on), not again after."""
+    (then it is read from the outbox to be worked on), not again after; and once whether a
+    scene of its map is held."""
     commands = waited_for(mongo_uri, empty, week, threaded=False)
-    assert outbox_asks(commands) == {("distinct", OUTBOX): 5, ("find", OUTBOX): 5,
+    assert outbox_asks(commands) == {("distinct", OUTBOX): 5, ("find", OUTBOX): 10,
                                      ("delete", OUTBOX): 5}
     assert empty.db[MAPS].find_one({"_id": kitchen_week.MAP})["lease"] is None
 

@@ -189,10 +189,16 @@ class Pipeline:
                                                    "held": False}))
 
     def held(self, scene_ids: Sequence[ObjectId]) -> bool:
-        """Whether a scene of these scenes' maps is held (its stage kept failing): their
-        belief misses it until it is retried, whatever went through after it."""
-        maps = self.store.db[SCENES].distinct("map", {"_id": {"$in": list(scene_ids)}})
-        return self.outbox.find_one({"map": {"$in": maps}, "held": True}, {"_id": 1}) is not None
+        """Whether a scene of these scenes' maps is held (its stage kept failing, here or in
+        another process): their belief misses it until it is retried, whatever went through
+        after it. One look at the outbox's few held entries (the maps of scenes this process
+        committed are known without asking)."""
+        with self._commits:
+            maps = {self._went_through[i] for i in scene_ids if i in self._went_through}
+        if unknown := [i for i in scene_ids if i not in self._went_through]:
+            maps |= set(self.store.db[SCENES].distinct("map", {"_id": {"$in": unknown}}))
+        return self.outbox.find_one({"map": {"$in": sorted(maps)}, "held": True},
+                                    {"_id": 1}) is not None
 
     def _maps_catching_up(self, scene_ids: Sequence[ObjectId]) -> list[str]:
         """The maps of these scenes being rebuilt, not back yet where they were before."""

@@ -237,12 +237,17 @@ class Consolidation:
             later.write()  # the earlier clusters' links are read
         merged: dict = {}  # object -> the object it was merged into
         twins, taken_looks = self._remembered_twice(decisions, clusters, later, session)
+        certainty = {d.object: d.probability for d in decisions if d.key in clusters}
         for keep, twin in twins:
             keep, twin = _after(merged, keep), _after(merged, twin)
             if self._seen_together(keep, twin, later):  # (two twins seen side by side)
                 continue
+            started = max(known_objects.docs.get(o, {}).get("first_seen") or scene.timestamp
+                          for o in (keep, twin))  # (the history that began later)
             stays = self._merge(keep, twin, scene, known_objects, later, session)
             merged[twin if stays == keep else keep] = stays
+            later.write()  # (that history's first event may be this batch's)
+            self._appeared_as_moved(stays, started, certainty.get(keep, 1.0), session)
         absorbed = {twin for _, twin in twins}  # (their looks are the objects' seen now)
         for other, look in taken_looks:
             if other not in absorbed:
@@ -289,9 +294,10 @@ class Consolidation:
             self.decided.update((c, _after(merged, o)) for c, o in self.decided.items())
 
     def _appeared_as_moved(self, object_id, started: int, likeness: float, session) -> None:
-        """The track the catalogue joined to an older object began with an "appear": it was
-        that object, moved there unseen. Its probability is the catalogue's likeness of the
-        two (how much of the new track's model the old one's hold), not a calibrated one."""
+        """The history joined to an older object's began with an "appear": it was that
+        object, moved there unseen. Its probability: for the catalogue's recall, its likeness
+        of the two (how much of the new track's model the old one's hold), not a calibrated
+        one; for one object remembered twice, that of the link that showed it."""
         self.events.update_one(
             {"object_id": object_id, "time": started, "explanation": Explanation.APPEAR.value},
             {"$set": {"explanation": Explanation.MOVE.value, "probability": likeness,

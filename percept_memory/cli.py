@@ -378,7 +378,13 @@ def serve_app(store, settings: Settings, host: str, sock: socket.socket) -> None
     # What is loaded now lives as long as the server: out of the collector's way, so that
     # each full collection (a request body parses into ~100,000 objects) skips it (-10 % CPU).
     gc.freeze()
-    uvicorn.Server(uvicorn.Config(app, log_level="warning")).run(sockets=[sock])
+    # stopping, open streams (the live page's events, an export a client stopped reading)
+    # get SHUTDOWN_S to end, then are cut: they kept the server up as long as they lasted
+    uvicorn.Server(uvicorn.Config(app, log_level="warning",
+                                  timeout_graceful_shutdown=SHUTDOWN_S)).run(sockets=[sock])
+
+
+SHUTDOWN_S = 5
 
 
 PORT = click.IntRange(1, 65535)

@@ -221,6 +221,29 @@ def test_a_bad_database_name_and_a_port_in_use_are_one_error_line(mongo_uri):
     assert line == f"Error: cannot listen on 127.0.0.1:{port}: Address already in use"
 
 
+def test_serve_stops_on_sigterm_while_a_live_page_listens(mongo_uri):
+    """The live page's event stream ends only when its client goes: a tab left open kept
+    the server up for as long (a SIGTERM waited 59 s for a curl to give up)."""
+    from .test_readme import wait_until_serving
+    port = free_port()
+    env = {**os.environ, "MONGODB_URI": mongo_uri, "PMEM_DB": "pmem_test_serve_stops"}
+    server = subprocess.Popen([sys.executable, "-m", "percept_memory", "serve", "--port",
+                               str(port)], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_until_serving(f"http://127.0.0.1:{port}/api/schema/scene")
+        with socket.create_connection(("127.0.0.1", port)) as listener:
+            listener.sendall(b"GET /live/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert listener.recv(64).startswith(b"HTTP/1.1 200")
+            started = time.monotonic()
+            server.terminate()
+            server.wait(timeout=30)
+            assert time.monotonic() - started < 10
+        assert "Traceback" not in server.stderr.read()
+    finally:
+        server.kill()
+        MongoClient(mongo_uri).drop_database("pmem_test_serve_stops")
+
+
 @pytest.mark.parametrize("options, words", [
     (["--after", "yesterday"], "after: expected nanoseconds since the epoch or an ISO 8601"),
     (["--box", "1,2"], "box: expected a box x0,y0,z0,x1,y1,z1"),

@@ -150,6 +150,7 @@ class Pipeline:
         self._went_through: dict[ObjectId, str] = {}
         self._catching_up: dict[str, tuple] = {}
         self._commits = threading.Condition()
+        self._forever = threading.local()  # .running: in the thread of run_forever
 
     # --- running ---------------------------------------------------------------------------
 
@@ -273,8 +274,14 @@ class Pipeline:
         self._stop.set()
         self._wake.set()
 
+    def _stopping(self) -> bool:
+        """Whether run_forever, in this thread, was asked to stop: it stops between batches,
+        the rest waiting in the outbox (durable), not after the whole backlog (a SIGTERM
+        waited for it past docker's grace period). A caller's own wait or drain goes on."""
+        return self._stop.is_set() and getattr(self._forever, "running", False)
+
     def stop(self) -> None:
-        """Stop the background thread, after what it is doing."""
+        """Stop the background thread, after the batch it is doing."""
         self.stop_soon()
         if self._thread is not None:
             self._thread.join()
@@ -328,6 +335,7 @@ class Pipeline:
         takes what was due when it looked: after one that did work, the next looks after
         QUIET_S (at once when this process stores a scene), not while whoever waited for that
         work reads its answer. A pass that fails is logged and tried again."""
+        self._forever.running = True
         while not self._stop.is_set():
             try:
                 done = self._pass()
@@ -392,7 +400,7 @@ class Pipeline:
         `catch_up`: where a rebuild of the map must get back to (its belief is not current
         until then)."""
         count, size = 0, self.batch
-        while True:
+        while not self._stopping():
             wanted = min(size, self._give_way())
             entries = self._next(map_name, wanted + 1)
             if not entries:
@@ -431,6 +439,7 @@ class Pipeline:
                 return count, True
             size = self.batch
             watermark = (entries[-1]["time"], entries[-1]["_id"])
+        return count, False
 
     def _next(self, map_name: str, size: int) -> list[dict]:
         """The next entries of the map that are due, in order (none while the first waits)."""

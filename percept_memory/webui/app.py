@@ -7,6 +7,7 @@ and refused with 413 as soon as they pass PMEM_MAX_REQUEST_MB.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import asynccontextmanager
 from typing import Annotated, Any, Literal
 
@@ -16,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from pymongo.errors import AutoReconnect
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 from starlette.routing import Match
 
 from percept_memory.ingest.jobs import State, job_report
@@ -156,8 +158,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
             ids = [r.scene_id for r in results]
             return results, "held" if service.pipeline.held(ids) else "pending"
 
-        with service.pipeline.ingesting():  # (and while the body comes)
-            body = await _read_body(request, max_bytes)
+        body = await _read_body(request, max_bytes, service.pipeline.arriving)
         try:
             results, belief = await run_in_threadpool(stored_and_settled)
         except NotScenes as error:
@@ -233,16 +234,22 @@ def with_scene_schemas(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
-async def _read_body(request: Request, max_bytes: int) -> bytes:
+async def _read_body(request: Request, max_bytes: int,
+                     arriving: Callable[[], None]) -> bytes:
+    """The body, refused past `max_bytes`; `arriving()` after each part that came."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise ApiError(413, f"the request body is over the limit of {max_bytes} bytes")
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_bytes:
-            raise ApiError(413, f"the request body is over the limit of {max_bytes} bytes")
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > max_bytes:
+                raise ApiError(413, f"the request body is over the limit of {max_bytes} bytes")
+            chunks.append(chunk)
+            arriving()
+    except ClientDisconnect:  # (no one to answer: said in one line, not a traceback)
+        raise ApiError(400, "the client went away before the body ended") from None
     return b"".join(chunks)
 
 

@@ -24,7 +24,7 @@ from percept_memory.memory.mongod import (
     _process_alive,
     find_mongod,
 )
-from percept_memory.memory.settings import settings_help
+from percept_memory.memory.settings import Settings, default_data_dir, settings_help
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 
@@ -177,6 +177,18 @@ def test_unwritable_data_dir(make_mongod: Callable[..., EmbeddedMongod], tmp_pat
         make_mongod(data_dir=data_dir).start()
     assert str(data_dir) in str(error.value)
     assert "PMEM_DATA_DIR" in str(error.value)
+
+
+def test_a_relative_or_empty_data_dir_is_made_absolute_or_the_default(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """mongod was started with the folder as given, relative to where pmem ran: an empty one
+    wrote its pid file to / and left a mongod no `pmem db stop` found; a relative one failed
+    to start."""
+    monkeypatch.chdir(tmp_path)
+    assert Settings(data_dir="relative").data_dir == tmp_path / "relative"
+    assert Settings(data_dir="").data_dir == default_data_dir()
+    assert EmbeddedMongod(Path("here"), free_port(), cache_gb=0.25, oplog_mb=32).data_dir == (
+        tmp_path / "here")
 
 
 def test_data_dir_locked_by_another_mongod(shared: EmbeddedMongod) -> None:

@@ -82,7 +82,7 @@ class EmbeddedMongod:
     def __init__(
         self, data_dir: Path, port: int, cache_gb: float | None, oplog_mb: int
     ) -> None:
-        self.data_dir = Path(data_dir)
+        self.data_dir = Path(data_dir).absolute()  # (mongod runs elsewhere: pid file, db)
         self.port = port
         self.cache_gb = cache_gb
         self.oplog_mb = oplog_mb

@@ -9,7 +9,7 @@ from typing import Annotated, Literal
 from urllib.parse import urlsplit
 
 import platformdirs
-from pydantic import AfterValidator, AliasChoices, Field, ValidationError
+from pydantic import AfterValidator, AliasChoices, BeforeValidator, Field, ValidationError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from .types.json_forms import IMAGE_LIMITS
@@ -47,6 +47,14 @@ def _origins(value: str) -> str:
     return ",".join(origins)
 
 
+def _a_folder(value: object) -> object:
+    """A folder as given, made absolute (mongod is started elsewhere than where a relative
+    one points); empty is unset (it was the current folder: a pid file went to /)."""
+    if isinstance(value, str | Path):
+        return Path(value).expanduser().absolute() if str(value).strip() else default_data_dir()
+    return value
+
+
 def default_data_dir() -> Path:
     """Where the embedded mongod keeps its files unless PMEM_DATA_DIR says otherwise."""
     return Path(platformdirs.user_data_dir("percept-memory")) / "mongod"
@@ -69,7 +77,7 @@ class Settings(BaseSettings):
         description="PMEM_MONGO_TIMEOUT_MS: how long to wait for an unreachable MongoDB before "
                     "failing (HTTP 503)",
     )
-    data_dir: Path = Field(
+    data_dir: Annotated[Path, BeforeValidator(_a_folder)] = Field(
         default_factory=default_data_dir,
         description="PMEM_DATA_DIR: data directory of the embedded mongod",
     )

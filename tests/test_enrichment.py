@@ -155,6 +155,12 @@ def test_ingest_enqueues_one_job_per_cluster_with_a_crop(fresh):
                     clusters=[Cluster(hypotheses=[ImageROI(box=(0, 0, 4, 4))])])
     ingest(fresh, [no_crop])
     assert fresh.db[JOBS].count_documents({}) == clusters
+    # a crop whose lookup's results came with it (a scene log of an enriched memory): not
+    # looked up again (it was, and each such cluster got its results twice)
+    looked_up = scene_with_crops([cut(kitchen_frame(), MUESLI_BOX)], 6)
+    looked_up.clusters[0].annotations.append(WebLookup(category="product", title="Müsli"))
+    ingest(fresh, [looked_up])
+    assert fresh.db[JOBS].count_documents({}) == clusters
 
 
 def test_worker_appends_lookups_with_provenance_once(fresh, mongo_uri, db_name):

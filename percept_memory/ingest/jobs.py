@@ -41,7 +41,7 @@ from pymongo.errors import OperationFailure
 from percept_memory.converters import name_of
 from percept_memory.memory.schema import JOBS
 from percept_memory.memory.store import MemoryStore
-from percept_memory.memory.types import ImageROI
+from percept_memory.memory.types import ImageROI, WebLookup
 
 log = logging.getLogger(__name__)
 
@@ -55,10 +55,13 @@ def utc_now() -> datetime:
     return datetime.now(UTC)
 
 
-# the clusters of some scenes that have a crop to look up
+# the clusters of some scenes that have a crop to look up, and no lookup's results already
+# (scenes imported from a scene log of an enriched memory: looked up again, each got twice
+# the results)
 def _with_crop(scene_ids: Sequence[ObjectId]) -> dict:
     return {"scene_id": {"$in": list(scene_ids)}, "hypotheses": {"$elemMatch": {
-        "_type": name_of(ImageROI), "crop": {"$ne": None}}}}
+        "_type": name_of(ImageROI), "crop": {"$ne": None}}},
+        "annotations._type": {"$ne": name_of(WebLookup)}}
 
 
 class LookupEnqueuer:

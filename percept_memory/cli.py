@@ -456,14 +456,20 @@ def wait_for_lookups(store, workers: list) -> dict[str, int]:
             time.sleep(0.5)
 
 
+# The demo's RGB-D samples that record no time are put at this one (a second apart), not at
+# their files' modification times: a fresh clone or a copy of the data has new ones, and the
+# demo run again stored them again.
+DEMO_SAMPLES_TIME = 1_522_238_400_000_000_000  # 2018-03-28T12:00:00Z, the samples' day
+
+
 def demo_sources(days: int):
     """(name, scenes) of everything the demo loads: real data first, then the kitchen week."""
     from percept_memory.demo import kitchen_week
     from percept_memory.ingest import rgbd, robosherlock
 
     data = shared_data_dir()
-    for folder in sorted((data / "samples").iterdir()):
-        yield f"samples/{folder.name}", rgbd.read_samples(folder)
+    for folder in sorted((data / "samples").iterdir()):  # (at a time of their own: see below)
+        yield f"samples/{folder.name}", rgbd.read_samples(folder, time=DEMO_SAMPLES_TIME)
     for folder in sorted((data / "mongodump").iterdir()):
         yield f"mongodump/{folder.name}", robosherlock.read_dump(folder)
     if days:

@@ -221,6 +221,27 @@ def test_a_bad_database_name_and_a_port_in_use_are_one_error_line(mongo_uri):
     assert line == f"Error: cannot listen on 127.0.0.1:{port}: Address already in use"
 
 
+def test_the_demos_samples_are_at_the_same_times_from_a_copy_of_the_data(tmp_path,
+                                                                         monkeypatch):
+    """A fresh clone or a copy of the data has new file times: samples put at them were
+    stored again by the demo run again ("Running it again adds nothing")."""
+    import shutil
+
+    from percept_memory.cli import demo_sources
+
+    def times() -> list[int]:
+        return [scene.timestamp for name, scenes in demo_sources(days=0)
+                if name.startswith("samples/") for scene in scenes]
+
+    monkeypatch.setenv("PMEM_SHARED_DATA", str(ROBOSHERLOCK))
+    original = times()
+    copy = tmp_path / "robosherlock"
+    shutil.copytree(ROBOSHERLOCK / "samples", copy / "samples", copy_function=shutil.copy)
+    (copy / "mongodump").mkdir()
+    monkeypatch.setenv("PMEM_SHARED_DATA", str(copy))
+    assert len(original) == 3 and times() == original
+
+
 def test_serve_stops_on_sigterm_while_a_live_page_listens(mongo_uri):
     """The live page's event stream ends only when its client goes: a tab left open kept
     the server up for as long (a SIGTERM waited 59 s for a curl to give up)."""

@@ -40,6 +40,8 @@ HELP = f"""percept-memory: a long-term spatio-temporal memory for robot percepti
 Settings come from these environment variables:
 
 \b
+  PMEM_SHARED_DATA: the RoboSherlock data `pmem demo` loads (default: shared/data/robosherlock
+  beside the checkout)
 {settings_help()}"""
 
 
@@ -141,7 +143,8 @@ def status(settings: Settings, as_json: bool) -> None:
         click.echo(json.dumps(info, indent=2))
         return
     for key, value in info.items():
-        click.echo(f"{key + ':':<12}{_readable(key, value)}")
+        shown = "size" if key == "size_bytes" else key  # (in MiB: not its bytes)
+        click.echo(f"{shown + ':':<12}{_readable(key, value)}")
 
 
 def _readable(key: str, value: Any) -> str:

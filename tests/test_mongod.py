@@ -309,4 +309,4 @@ def test_cli_help_ends_with_the_environment_variables() -> None:
     result = CliRunner().invoke(main, ["--help"])
     assert result.exit_code == 0
     assert main.help.endswith(settings_help())
-    assert "PMEM_DATA_DIR" in result.output
+    assert "PMEM_DATA_DIR" in result.output and "PMEM_SHARED_DATA" in result.output

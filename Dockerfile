@@ -1,4 +1,4 @@
-# The percept-memory app (CLI and web app; later the workers), for docker-compose.
+# The percept-memory app (CLI, web app and lookup workers), for docker-compose.
 FROM python:3.11-slim
 WORKDIR /app
 COPY pyproject.toml README.md ./

@@ -486,6 +486,8 @@ def test_where_objects_usually_are_also_by_hour(engine, store):
     assert sum(r.count for r in hourly.regions) == sum(r.count for r in usual.regions)
     hours = {r.hour for r in hourly.rows}
     assert hours <= set(range(24)) and len(hours) > 3
+    order = [(-r.count, r.name, r.region, r.hour, str(r.object_id)) for r in hourly.rows]
+    assert order == sorted(order)  # rows of equal counts too, run after run
 
 
 def test_annotator_timings_from_the_scene_logs(engine, kitchen):

@@ -71,7 +71,9 @@ def cooccurrence(q: Cooccurrence) -> Plan[CooccurrenceStats]:
     for row in per_object:
         totals[row.region, row.hour] += row.count
     return CooccurrenceStats(
-        rows=sorted(per_object, key=lambda r: (-r.count, r.name or "", r.region or "")),
+        rows=sorted(per_object, key=lambda r: (-r.count, r.name or "", r.region or "",
+                                               -1 if r.hour is None else r.hour,
+                                               str(r.object_id))),  # (ties: the same order)
         regions=[Occurrence(region=region, hour=hour, count=n)
                  for (region, hour), n in sorted(totals.items(),
                                                  key=lambda i: (-i[1], str(i[0])))])

@@ -122,6 +122,18 @@ def test_markers_are_named_links_in_the_tab_order(page, url, dense):
     expect(page).to_have_url(re.compile(r"box="))
 
 
+def test_a_map_whose_scenes_are_not_consolidated_yet_has_its_page(client, store):
+    """Its first scenes are stored before the consolidator makes its belief: the page was a
+    404 "no map named" meanwhile."""
+    (ids,) = store.put_scenes([Scene(timestamp=1_000, robot="r", map="just-started")])
+    try:
+        answer = client.get("/map", params={"map": "just-started"})
+        assert answer.status_code == 200 and "just-started" in answer.text
+    finally:
+        store.scenes.delete_one({"_id": ids.scene_id})
+        store.db["outbox"].delete_one({"_id": ids.scene_id})
+
+
 def test_a_sparse_map_draws_each_object(client):
     body = client.get("/map", params={"map": kitchen_week.MAP}).text
     assert 'class="marker' not in body and body.count('class="object ') > 10

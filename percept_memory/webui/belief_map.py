@@ -488,8 +488,9 @@ def moment_of(t: str, at: str) -> int | None:
 
 
 def map_names(store: MemoryStore) -> list[str]:
-    """The maps with a belief, by name."""
-    return sorted(store.db[MAPS].distinct("_id"))
+    """The maps with a belief or with scenes (the first scenes of a map are stored before the
+    consolidator makes its belief: its page was a 404 meanwhile), by name."""
+    return sorted({*store.db[MAPS].distinct("_id"), *store.scenes.distinct("map")} - {None})
 
 
 def _newest_map(store: MemoryStore) -> str | None:

@@ -320,7 +320,7 @@ def _iso_time(_ctx, _param, value: str | None) -> int | None:
 
 
 @import_.command(name="rgbd", epilog=example(
-    "pmem import rgbd ../shared/data/robosherlock/samples/kitchen --map lab"))
+    "pmem import rgbd ../shared/data/robosherlock/samples/kitchen --robot kinect --map lab"))
 @click.argument("folder", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--robot", default="pr2", show_default=True, help="robot the data came from")
 @click.option("--map", "map_name", help="the map the scenes belong to  [default: rgbd/<folder>]")
@@ -950,7 +950,7 @@ def _author_option(command):
                         help="who makes the correction")(command)
 
 
-@main.group(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
+@main.group(epilog=example('pmem correct relabel CLUSTER_ID "blue mug"'))
 def correct() -> None:
     """Correct what the annotators said of a cluster: relabel it, reject it, merge two objects,
     split one, undo a correction. Each is stored beside the annotations, with who and when (README:
@@ -961,15 +961,22 @@ def _made(make, *args) -> None:
     from percept_memory.memory import curation
     from percept_memory.memory.store import MemoryStore
 
+    from percept_memory.memory.pipeline import status
+
     with MemoryStore.open(click.get_current_context().obj) as store:
         try:
             made = make(store, *args)
         except curation.NotCorrectable as error:
             raise click.ClickException(str(error)) from None
+        rebuilding = [row["map"] for row in status(store)["maps"] if row["rebuilding"]]
     click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
+    if rebuilding:  # (who is who changed: the belief follows once a consolidator runs)
+        click.echo(f"the belief of {', '.join(rebuilding)} is rebuilt with it by the memory "
+                   "pipeline (pmem serve, or pmem consolidate); `pmem pipeline` shows how far",
+                   err=True)
 
 
-@correct.command(epilog=example('pmem correct relabel 6b06239e27e307f8fff741bc "blue mug"'))
+@correct.command(epilog=example('pmem correct relabel CLUSTER_ID "blue mug"'))
 @click.argument("cluster", callback=_object_id)
 @click.argument("label")
 @_author_option
@@ -980,7 +987,7 @@ def relabel(cluster, label: str, author: str) -> None:
     _made(curation.relabel, cluster, label, author)
 
 
-@correct.command(epilog=example("pmem correct reject 6b06239e27e307f8fff741bc"))
+@correct.command(epilog=example("pmem correct reject CLUSTER_ID"))
 @click.argument("cluster", callback=_object_id)
 @click.option("--reason", default="", help="why the detection is wrong")
 @_author_option
@@ -992,7 +999,7 @@ def reject(cluster, reason: str, author: str) -> None:
 
 
 @correct.command(epilog=example(
-    "pmem correct merge 6b06239e27e307f8fff741bc 6b06239e27e307f8fff741a0"))
+    "pmem correct merge CLUSTER_ID OTHER_CLUSTER_ID"))
 @click.argument("cluster", callback=_object_id)
 @click.argument("other", callback=_object_id)
 @_author_option
@@ -1004,7 +1011,7 @@ def merge(cluster, other, author: str) -> None:
 
 
 @correct.command(epilog=example(
-    "pmem correct split 6b0623a127e307f8fff741d2 6b06239e27e307f8fff741bc"))
+    "pmem correct split OBJECT_ID CLUSTER_ID"))
 @click.argument("object_id", metavar="OBJECT", callback=_object_id)
 @click.argument("clusters", nargs=-1, required=True, callback=_object_ids)
 @_author_option
@@ -1017,7 +1024,7 @@ def split(object_id, clusters, author: str) -> None:
 
 
 @correct.command(epilog=example(
-    "pmem correct undo 6b06239e27e307f8fff741bc 6b0623a127e307f8fff741c6"))
+    "pmem correct undo CLUSTER_ID CORRECTION_ID"))
 @click.argument("cluster", callback=_object_id)
 @click.argument("correction", callback=_object_id)
 @_author_option

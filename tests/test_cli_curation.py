@@ -56,8 +56,10 @@ def test_a_split_from_the_command_line(env, store):
     made = pmem(env, "correct", "split", str(obj["_id"]), *map(str, clusters),
                 "--author", "ana")
     assert made.exit_code == 0, made.output
-    ((kind, correction, _, author),) = [line.split() for line in made.output.splitlines()]
+    ((kind, correction, _, author),) = [line.split() for line in made.stdout.splitlines()]
     assert (kind, author) == ("split", "ana")
+    # who is who changed: said that the belief follows once a consolidator runs
+    assert made.stderr.startswith("the belief of kitchen-week is rebuilt with it")
     (row,) = json.loads(pmem(env, "corrections", "--json", "--limit", "1").output)
     assert (row["kind"], row["id"], row["cluster_id"]) == ("split", correction, str(clusters[1]))
     assert sorted(row["split_off"]) == sorted(map(str, clusters))  # the earlier holds it

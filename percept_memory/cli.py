@@ -959,9 +959,8 @@ def correct() -> None:
 
 def _made(make, *args) -> None:
     from percept_memory.memory import curation
-    from percept_memory.memory.store import MemoryStore
-
     from percept_memory.memory.pipeline import status
+    from percept_memory.memory.store import MemoryStore
 
     with MemoryStore.open(click.get_current_context().obj) as store:
         try:

@@ -959,7 +959,7 @@ def correct() -> None:
 
 def _made(make, *args) -> None:
     from percept_memory.memory import curation
-    from percept_memory.memory.pipeline import status
+    from percept_memory.memory.pipeline import rebuilding
     from percept_memory.memory.store import MemoryStore
 
     with MemoryStore.open(click.get_current_context().obj) as store:
@@ -967,10 +967,10 @@ def _made(make, *args) -> None:
             made = make(store, *args)
         except curation.NotCorrectable as error:
             raise click.ClickException(str(error)) from None
-        rebuilding = [row["map"] for row in status(store)["maps"] if row["rebuilding"]]
+        rebuilt = rebuilding(store)
     click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
-    if rebuilding:  # (who is who changed: the belief follows once a consolidator runs)
-        click.echo(f"the belief of {', '.join(rebuilding)} is rebuilt with it by the memory "
+    if rebuilt:  # (who is who changed: the belief follows once a consolidator runs)
+        click.echo(f"the belief of {', '.join(rebuilt)} is rebuilt with it by the memory "
                    "pipeline (pmem serve, or pmem consolidate); `pmem pipeline` shows how far",
                    err=True)
 

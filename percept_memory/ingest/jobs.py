@@ -122,7 +122,8 @@ class JobQueue:
             before = None
             # a dead worker's jobs first: due at their lease's end, they sort behind every job
             # queued before it, and would wait for the whole backlog (their open writes too)
-            for due in ({"state": "running", "due": {"$lte": at}}, {"due": {"$lte": at}}):
+            for due, index in (({"state": "running", "due": {"$lte": at}}, "state_updated"),
+                               ({"due": {"$lte": at}}, "due")):
                 before = await self.jobs.find_one_and_update(
                     due,
                     {"$set": {"state": "running", "worker": worker, "lease": token,
@@ -130,6 +131,7 @@ class JobQueue:
                               "updated": at, "session": session.session_id},
                      "$inc": {"attempts": 1}},
                     sort=[("due", 1)], return_document=ReturnDocument.BEFORE,
+                    hint=index,  # (running jobs are few: by state, not the backlog by due)
                 )
                 if before is not None:
                     break

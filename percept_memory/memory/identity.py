@@ -603,10 +603,10 @@ def resolve(new: Sequence[Observation], known: Sequence[Known],
 
     decisions = []
     matched: set[int] = set()
-    taken = {j: i for i, j in assigned.items()}
+    taken = set(assigned.values())
     for i, observation in enumerate(new):
         alternatives = _alternatives(table[i], known, params.prior_appear, gone,
-                                     {j for j, by in taken.items() if by != i})
+                                     taken - {assigned.get(i)})
         j = assigned.get(i)
         if j is None:
             decisions.append(Decision(observation.key, None, Explanation.APPEAR,

@@ -641,6 +641,16 @@ def retry_held(store: MemoryStore) -> int:
         "held": False, "attempts": 0, "due": None}}).modified_count
 
 
+# a map whose belief is being rebuilt: asked for, or under way until it is back where it was
+REBUILDING = {"$or": [{"rebuild": True}, {"catch_up": {"$ne": None}}]}
+
+
+def rebuilding(store: MemoryStore, map_name: str | None = None) -> list[str]:
+    """The maps being rebuilt (of these, if a map is named)."""
+    named = {} if map_name is None else {"_id": map_name}
+    return sorted(store.db[MAPS].distinct("_id", {**named, **REBUILDING}))
+
+
 def status(store: MemoryStore, held_limit: int = 50) -> dict:
     """How far the belief of each map is: the newest consolidated scene's time, the scenes
     pending and held, whether it is being rebuilt and who holds its lease (one that ran out

@@ -16,7 +16,8 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 from pymongo import DESCENDING
 
-from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
+from percept_memory.memory.pipeline import rebuilding
+from percept_memory.memory.schema import EVENTS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.results import position_sigma
 
@@ -71,20 +72,18 @@ def routes(store: MemoryStore) -> APIRouter:
             view, regions = floor_plan(store, believed.get("map"), [e["position"] for e in placed],
                                        TRACK_WIDTH, TRACK_HEIGHT)
             candidates = curation.merge_candidates(store, believed, history)
-            rebuilding = store.db[MAPS].find_one({"_id": believed.get("map"), "$or": [
-                {"rebuild": True}, {"catch_up": {"$ne": None}}]}, {"_id": 1}) is not None
             return (believed, history, view, regions, track(view, placed), candidates,
-                    rebuilding)
+                    bool(rebuilding(store, believed.get("map"))))
 
         loaded = await run_in_threadpool(load)
         if isinstance(loaded, ObjectId):
             return RedirectResponse(f"/objects/{loaded}", status_code=303)
-        believed, history, view, regions, marks, candidates, rebuilding = loaded
+        believed, history, view, regions, marks, candidates, being_rebuilt = loaded
         return page(request, "object.html", {
             "object": believed, "events": history, "events_shown": EVENTS_SHOWN,
             "view": view, "regions": regions, "track": marks, "timeline": timeline(history),
             "merge_candidates": candidates, "position_sigma": position_sigma(believed),
-            "rebuilding": rebuilding,
+            "rebuilding": being_rebuilt,
         }, policy=SCRIPT_CSP)  # its correction form's script (curation.py)
 
     return router

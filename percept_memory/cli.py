@@ -34,6 +34,7 @@ from percept_memory.memory.settings import (
     settings_help,
     settings_problems,
 )
+from percept_memory.memory.types.modules import TypeModuleError, import_type_modules
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -94,6 +95,10 @@ def main(ctx: click.Context) -> None:
         ctx.obj = Settings()
     except ValidationError as error:
         raise click.ClickException(settings_problems(error)) from None
+    try:
+        import_type_modules(ctx.obj.types)
+    except TypeModuleError as error:
+        raise click.ClickException(one_line(error)) from None
 
 
 # --- pmem db: the embedded mongod --------------------------------------------------------------

@@ -28,6 +28,7 @@ from percept_memory.ingest.errors import IngestError
 from percept_memory.ingest.json_input import parse
 from percept_memory.memory import documents as docs
 from percept_memory.memory.settings import collect_less
+from percept_memory.memory.types.modules import import_type_modules
 
 log = logging.getLogger(__name__)
 
@@ -148,12 +149,19 @@ def body_parts(body: bytes, ndjson: bool, workers: int) -> list[ArrayPart | Line
     return [LinesPart(start, lines[start:stop]) for start, stop in pairwise(bounds)]
 
 
+def worker_started(type_modules: str) -> None:
+    """A worker process as the server's: the same annotation types, collecting as seldom."""
+    collect_less()
+    import_type_modules(type_modules)
+
+
 class JsonWorkers:
     """The worker processes, started on first use (each imports the program: about a second)
-    and stopped by `close`."""
+    and stopped by `close`. `type_modules`: PMEM_TYPES, imported by each."""
 
-    def __init__(self, processes: int):
+    def __init__(self, processes: int, type_modules: str = ""):
         self.processes = processes
+        self.type_modules = type_modules
         self._pool: ProcessPoolExecutor | None = None
 
     def prepared(self, body: bytes, ndjson: bool, context: Mapping,
@@ -165,7 +173,7 @@ class JsonWorkers:
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
                 self.processes, mp_context=multiprocessing.get_context("spawn"),
-                initializer=collect_less)
+                initializer=worker_started, initargs=(self.type_modules,))
         futures = []
         try:
             futures += [self._pool.submit(prepared_part, part, dict(context), threshold)

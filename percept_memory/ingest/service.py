@@ -91,7 +91,7 @@ class IngestService:
         self.batch_size = batch_size
         self.limits = {"max_image_pixels": settings.max_image_pixels,
                        "max_crop_pixels": settings.max_crop_pixels}  # for validation
-        self.json_workers = (JsonWorkers(settings.ingest_processes)
+        self.json_workers = (JsonWorkers(settings.ingest_processes, settings.types)
                              if settings.ingest_processes > 1 else None)
 
     def close(self) -> None:

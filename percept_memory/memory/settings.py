@@ -47,6 +47,14 @@ def _origins(value: str) -> str:
     return ",".join(origins)
 
 
+def _module_names(value: str) -> str:
+    """Python module names, comma-separated (`lab.types,lab.more`)."""
+    for name in filter(None, (n.strip() for n in value.split(","))):
+        if not all(part.isidentifier() for part in name.split(".")):
+            raise ValueError(f"PMEM_TYPES: {name!r} is not a Python module name, e.g. lab.types")
+    return value
+
+
 def _a_folder(value: object) -> object:
     """A folder as given, made absolute (mongod is started elsewhere than where a relative
     one points); empty is unset (it was the current folder: a pid file went to /)."""
@@ -131,6 +139,12 @@ class Settings(BaseSettings):
     query_timeout_ms: int = Field(
         default=2000, ge=1, le=3_600_000,
         description="PMEM_QUERY_TIMEOUT_MS: server-side time limit of each query operation",
+    )
+    types: Annotated[str, AfterValidator(_module_names)] = Field(
+        default="",
+        description="PMEM_TYPES: Python modules of your own annotation types (comma-separated), "
+                    "imported by every pmem process, as are those installed packages declare "
+                    "under the entry-point group percept_memory.types",
     )
 
     # --- enrichment workers (ingest/workers.py) ---

@@ -1,0 +1,117 @@
+"""Annotation types of one's own in the processes pmem starts (PMEM_TYPES): the server, its
+ingest worker processes and the CLI know the class, so its labels are worked out as it is
+stored; a module that cannot be imported is one line naming it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+import urllib.request
+
+import pytest
+from pymongo import MongoClient
+
+from percept_memory.ingest.json_batches import PARALLEL_BYTES
+
+from .test_json_workers import body_of
+from .test_readme import free_port, wait_until_serving
+
+MODULE = textwrap.dedent('''
+    from percept_memory.memory.types import Annotation, stored_type
+
+    @stored_type("lab.annotation.Heft")
+    class Heft(Annotation):
+        grams: float
+
+        def labels(self) -> list[str]:
+            return ["heavy"] if self.grams > 1000 else ["light"]
+''')
+
+
+def pmem_env(mongo_uri: str, db: str, folder, **more: str) -> dict:
+    return {**os.environ, "MONGODB_URI": mongo_uri, "PMEM_DB": db, "PYTHONPATH": str(folder),
+            "PMEM_TYPES": "heft_types", **more}
+
+
+def with_heft(scenes: list[dict], grams: float) -> list[dict]:
+    """Each scene's first cluster weighed."""
+    for scene in scenes:
+        scene["clusters"][0]["annotations"].append(
+            {"_type": "lab.annotation.Heft", "source": "Scale", "grams": grams})
+    return scenes
+
+
+def post(url: str, body: bytes) -> dict:
+    request = urllib.request.Request(url, body, {"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=120) as answer:
+        return json.load(answer)
+
+
+def pmem(env: dict, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "percept_memory", *args], env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_the_server_its_workers_and_the_cli_know_the_types_pmem_types_names(
+        mongo_uri, tmp_path, kitchen_rgb):
+    (tmp_path / "heft_types.py").write_text(MODULE)
+    db = "pmem_test_type_modules"
+    env = pmem_env(mongo_uri, db, tmp_path, PMEM_INGEST_PROCESSES="2",
+                   PMEM_CONSOLIDATOR="false")
+    port = free_port()
+    server = subprocess.Popen([sys.executable, "-m", "percept_memory", "serve", "--port",
+                               str(port)], env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_until_serving(f"{base}/api/schema/scene")
+        small = with_heft(body_of(kitchen_rgb, 0, 1), 1500)  # stored by the server itself
+        large = with_heft(body_of(kitchen_rgb, 1, 24), 200)  # by its worker processes
+        assert len(json.dumps(large).encode()) >= PARALLEL_BYTES
+        post(f"{base}/api/scenes", json.dumps(small).encode())
+        post(f"{base}/api/scenes", json.dumps(large).encode())
+        for label, count in (("heavy", 1), ("light", 24)):
+            with urllib.request.urlopen(
+                    f"{base}/api/clusters?labelled={label}&count=true&limit=0") as answer:
+                found = json.load(answer)
+                assert found["total"] == count, (label, found)
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    assert "Traceback" not in server.stderr.read()
+    try:  # the CLI: `pmem reindex` works the labels out again, from the class
+        MongoClient(mongo_uri)[db]["clusters"].update_many({}, {"$set": {"search.labels": []}})
+        assert pmem(env, "reindex").returncode == 0
+        found = pmem(env, "query", "clusters", "--labelled", "heavy", "--count", "--limit", "0",
+                     "--json")
+        assert json.loads(found.stdout)["total"] == 1
+    finally:
+        MongoClient(mongo_uri).drop_database(db)
+
+
+@pytest.mark.parametrize("types, words", [
+    ("no_such_module", "PMEM_TYPES: cannot import 'no_such_module': ModuleNotFoundError"),
+    ("broken_types", "PMEM_TYPES: cannot import 'broken_types': ZeroDivisionError"),
+    ("lab types", "PMEM_TYPES: 'lab types' is not a Python module name"),
+])
+def test_a_module_that_cannot_be_imported_is_one_line(mongo_uri, tmp_path, types, words):
+    (tmp_path / "broken_types.py").write_text("1 / 0\n")
+    done = pmem(pmem_env(mongo_uri, "pmem_test_type_modules_bad", tmp_path, PMEM_TYPES=types),
+                "info")
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("Error: ") and words in line
+
+
+def test_an_installed_package_declares_its_types_by_entry_point(monkeypatch):
+    from importlib import metadata
+
+    from percept_memory.memory.types import modules
+
+    point = metadata.EntryPoint("lab", "lab_pkg.types", modules.ENTRY_POINTS)
+    monkeypatch.setattr(modules, "entry_points",
+                        lambda group: [point] if group == modules.ENTRY_POINTS else [])
+    assert modules.type_modules("mine, lab_pkg.types") == ["mine", "lab_pkg.types"]
+    assert modules.type_modules("") == ["lab_pkg.types"]

@@ -134,8 +134,8 @@ class Consolidation:
         self._any_split = known.any_split
         learning = self._learning = self.catalogue and self.catalogue.begin(
             map_name, session, stored and stored.get("version"))
-        for scene, arrived in self._scenes(scene_ids, session):
-            self.consolidate(scene, arrived, calibration, known, later, session)
+        for scene in self._scenes(scene_ids, session):
+            self.consolidate(scene, calibration, known, later, session)
             if learning:
                 learnt = learning.observe([c.id for c in scene.clusters], scene.timestamp)
                 self._recalled(scene, learnt, known, later, session)
@@ -181,12 +181,11 @@ class Consolidation:
         return (Calibration.from_document(stored["cues"]) if stored
                 else Calibration.prior(self.params))
 
-    def consolidate(self, scene: Scene, arrived: dict, calibration: Calibration,
-                    known_objects: KnownObjects, later: Later, session) -> list[Decision]:
+    def consolidate(self, scene: Scene, calibration: Calibration, known_objects: KnownObjects,
+                    later: Later, session) -> list[Decision]:
         """Decide who is who in one stored scene and record it: the objects in memory at once
         (the next scene's candidates), in the database `later` with its events and cluster
-        links. `arrived`: cluster id -> how many of its annotations came with the scene (the
-        evidence to decide on)."""
+        links."""
         believed = self._candidates(scene, known_objects)
         seen_as = self.observations([c for o, _ in believed for c in _views(o)], session)
         known = [_known(o, in_view, seen_as) for o, in_view in believed
@@ -194,7 +193,7 @@ class Consolidation:
         kept = [c for c in scene.clusters if not rejected(c.annotations)]
         if not self._any_split and any(splits(c.annotations) for c in scene.clusters):
             self._any_split = known_objects.any_split = True  # (one came with the scene)
-        new = [_observation(cluster, arrived[cluster.id]) for cluster in kept]
+        new = [_observation(cluster) for cluster in kept]
         apart = self._kept_apart(scene, kept, later, session)
         decisions = resolve(new, known, self.params, calibration, apart=apart,
                             now=scene.timestamp)
@@ -480,12 +479,10 @@ class Consolidation:
         return [e["_id"] for e in dropped if "_id" in e]
 
     def _scenes(self, scene_ids: Sequence[ObjectId], session):
-        """The scenes with what identity needs of them (no pixels), in the given order, and
-        per cluster how many annotations it arrived with: those this process stored handed
-        over (all they hold arrived with them), the others read back."""
+        """The scenes with what identity needs of them (no pixels), in the given order: those
+        this process stored handed over, the others read back."""
         scenes = {key: scene for key in scene_ids
                   if (scene := self.store.handed_over.get(key)) is not None}
-        arrived = {c.id: len(c.annotations) for scene in scenes.values() for c in scene.clusters}
         if unread := [key for key in scene_ids if key not in scenes]:
             scene_docs = list(self.store.scenes.find({"_id": {"$in": unread}}, SCENE_EVIDENCE,
                                                      session=session))
@@ -493,12 +490,11 @@ class Consolidation:
             cluster_docs = list(self.store.clusters.find({"_id": {"$in": cluster_ids}},
                                                          CLUSTER_EVIDENCE, session=session))
             blobs = self.store._blobs(cluster_docs, session)
-            arrived |= {doc["_id"]: docs.arrived(doc) for doc in cluster_docs}
             scenes |= {doc["_id"]: docs.decode_scene(doc, cluster_docs, blobs)
                        for doc in scene_docs}
         for scene_id in scene_ids:
             if scene_id in scenes:  # (a scene deleted by hand has nothing to consolidate)
-                yield scenes[scene_id], arrived
+                yield scenes[scene_id]
 
     def observations(self, cluster_ids: list, session=None) -> dict:
         """The evidence of stored clusters (as Observations, by id), decoded once: what a
@@ -510,8 +506,7 @@ class Consolidation:
                                                   session=session))
             blobs = self.store._blobs(found, session)
             for doc in found:
-                self._decoded[doc["_id"]] = _observation(docs.decode_cluster(doc, blobs),
-                                                         docs.arrived(doc))
+                self._decoded[doc["_id"]] = _observation(docs.decode_cluster(doc, blobs))
         while len(self._decoded) > DECODED_KEPT:
             self._decoded.popitem(last=False)
         return {c: self._decoded[c] for c in cluster_ids if c in self._decoded}
@@ -558,10 +553,10 @@ def _after(merged: dict, object_id):
     return object_id
 
 
-def _observation(cluster: Cluster, arrived: int) -> Observation:
+def _observation(cluster: Cluster) -> Observation:
     """What identity compares: the cluster's place and the evidence it arrived with."""
     return Observation(cluster.id, cluster.position,
-                       [*cluster.annotations[:arrived], *cluster.hypotheses],
+                       [*cluster.annotations_arrived(), *cluster.hypotheses],
                        cluster.position_variance)
 
 

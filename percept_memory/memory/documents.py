@@ -272,8 +272,9 @@ def rewritten_cluster(cluster: Cluster, stored: Mapping, threshold: int) -> Docu
 
 def arrived(cluster_doc: Mapping) -> int:
     """How many of the cluster's annotations came with its scene (all, for data stored before
-    this was recorded)."""
-    return cluster_doc.get(ARRIVED_KEY, len(cluster_doc.get("annotations", ())))
+    this was recorded, and for a cluster's own data that leaves it unset)."""
+    count = cluster_doc.get(ARRIVED_KEY)
+    return len(cluster_doc.get("annotations", ())) if count is None else count
 
 
 def as_bson(doc: dict) -> RawBSONDocument:
@@ -284,7 +285,7 @@ def as_bson(doc: dict) -> RawBSONDocument:
 def _cluster_document(cluster: Cluster, timestamp: int, robot: str, map_name: str | None,
                       threshold: int, out: Documents) -> dict:
     doc = out.encode(cluster, threshold)
-    doc[ARRIVED_KEY] = len(cluster.annotations)
+    doc[ARRIVED_KEY] = len(cluster.annotations_arrived())
     doc[SEARCH_KEY] = search = search_fields(cluster, timestamp, robot, map_name)
     out.terms.update(filter(search_keys.misspellable, search["terms"]))
     out.labels.update(label for label in search["labels"] if not search_keys.one_word(label))
@@ -320,14 +321,14 @@ def differing(write: PreparedWrite, stored_scenes: Iterable[Mapping],
     the annotations it arrived with (enrichment and people append others)."""
     clusters = {doc["_id"]: doc for doc in stored_clusters}
     stored = {scene_key(doc): _content(doc, [clusters[c] for c in doc["clusters"]
-                                             if c in clusters], stored=True)
+                                             if c in clusters])
               for doc in stored_scenes}
     new_clusters = {doc["_id"]: doc for doc in map(_plain, write.documents.clusters)}
     found = []
     for doc in map(_plain, write.documents.scenes):
         key = scene_key(doc)
         if key in stored and stored[key] != _content(
-                doc, [new_clusters[c] for c in doc["clusters"]], stored=False):
+                doc, [new_clusters[c] for c in doc["clusters"]]):
             found.append(key)
     return found
 
@@ -339,11 +340,10 @@ def _plain(doc: Mapping) -> dict:
     return dict(doc)
 
 
-def _content(scene: Mapping, clusters: list[Mapping], stored: bool) -> tuple:
+def _content(scene: Mapping, clusters: list[Mapping]) -> tuple:
     def said(cluster: Mapping) -> dict:
         doc = _without_ids(cluster)
-        if stored:
-            doc["annotations"] = doc.get("annotations", [])[:arrived(cluster)]
+        doc["annotations"] = doc.get("annotations", [])[:arrived(cluster)]
         return doc
     return _without_ids(scene), [said(c) for c in clusters]
 
@@ -371,7 +371,7 @@ def refuse_repeats(scenes: Sequence[Scene]) -> None:
 
 def _model_content(scene: Scene) -> tuple:
     dump = scene.model_dump(mode="json", by_alias=True)
-    return _content(dump, dump["clusters"], stored=False)
+    return _content(dump, dump["clusters"])
 
 
 def partition(scenes: Iterable[Scene], stored: dict) -> tuple[list[Scene], list[SceneIds]]:
@@ -462,8 +462,16 @@ def _stored_fields(doc: Mapping) -> dict:
     return {k: v for k, v in doc.items() if k not in DERIVED_KEYS}
 
 
+def _cluster_fields(doc: Mapping) -> dict:
+    """A cluster's stored fields, with how many annotations arrived when others came later."""
+    fields = _stored_fields(doc)
+    if arrived(doc) < len(doc.get("annotations", ())):
+        fields[ARRIVED_KEY] = arrived(doc)
+    return fields
+
+
 def decode_cluster(doc: Mapping, blobs: Mapping[str, bytes]) -> Cluster:
-    return decode(_stored_fields(doc), DecodeContext(blobs))
+    return decode(_cluster_fields(doc), DecodeContext(blobs))
 
 
 def decode_scene(
@@ -472,7 +480,7 @@ def decode_scene(
     """The scene back from its document and its clusters' documents (any order)."""
     by_id = {c["_id"]: c for c in cluster_docs}
     fields = _stored_fields(doc)
-    fields["clusters"] = [_stored_fields(by_id[cid]) for cid in doc["clusters"] if cid in by_id]
+    fields["clusters"] = [_cluster_fields(by_id[cid]) for cid in doc["clusters"] if cid in by_id]
     return decode(fields, DecodeContext(blobs))
 
 

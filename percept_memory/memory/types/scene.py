@@ -27,6 +27,23 @@ class Cluster(Identifiable):
     object_id: Id | None = None  # the physical object this observation is believed to be
     hypotheses: list[polymorphic(Hypothesis)] = []
     annotations: list[polymorphic(Annotation)] = []
+    # How many of `annotations` came with the scene; those after were appended later
+    # (enrichment's lookups, people's corrections). Identity and the catalogue decide on those
+    # that came with it, so a stored cluster handed on (a scene log) is decided alike again.
+    arrived: int | None = Field(default=None, ge=0, description=(
+        "how many of the annotations came with the scene, the rest appended later "
+        "(enrichment, corrections); unset: all"))
+
+    @model_validator(mode="after")
+    def _arrived_among_annotations(self) -> Cluster:
+        if self.arrived is not None and self.arrived > len(self.annotations):
+            raise ValueError(f"arrived: {self.arrived} annotations arrived, but the cluster "
+                             f"has {len(self.annotations)}")
+        return self
+
+    def annotations_arrived(self) -> list:
+        """The annotations that came with the scene (all, unless `arrived` says fewer)."""
+        return self.annotations if self.arrived is None else self.annotations[:self.arrived]
 
     def annotations_of(self, kind: type[A]) -> list[A]:
         return [a for a in self.annotations if isinstance(a, kind)]

@@ -66,6 +66,10 @@ MALFORMED = [
      "not a kind of Annotation"),
     ("misspelt _type", f"{CLASSIFICATION}._type", "pm.annotation.Clasification",
      CLASSIFICATION, "did you mean 'pm.annotation.Classification'"),
+    ("a type's short name (its label was lost as an unknown type's)",
+     f"{CLASSIFICATION}._type", "Classification", CLASSIFICATION,
+     "named in full, with their namespace, such as 'lab.annotation.Weight'; did you mean "
+     "'pm.annotation.Classification'"),
     ("hypothesis among annotations", f"{CLASSIFICATION}._type", "pm.hypothesis.ImageROI",
      CLASSIFICATION, "not a kind of Annotation"),
     ("_type not text", f"{CLASSIFICATION}._type", 12, CLASSIFICATION, "not a kind"),

@@ -83,6 +83,11 @@ class Unknown(Typed):
         name = data[TYPE_KEY]
         if not isinstance(name, str) or class_for(name) is not None:
             raise ValueError(f"{TYPE_KEY} {name!r} is a registered type; its fields do not fit")
+        if TYPE_NAME.fullmatch(name) and "." not in name:  # a short name: whose type?
+            hint = close_names(name)
+            raise ValueError(f"{TYPE_KEY} {name!r} is not a type name: types are named in full, "
+                             "with their namespace, such as 'lab.annotation.Weight'"
+                             + (f"; did you mean {hint[0]!r}?" if hint else ""))
         if not TYPE_NAME.fullmatch(name) or len(name) > MAX_TYPE_NAME:
             raise ValueError(f"{TYPE_KEY} {name[:MAX_TYPE_NAME]!r} is not a type name: a dotted "
                              f"identifier such as 'lab.annotation.Weight', at most "

@@ -94,5 +94,9 @@ def is_reserved(name: str) -> bool:
 
 
 def close_names(name: str) -> list[str]:
-    """Registered names that look like `name`, for "did you mean" messages."""
-    return difflib.get_close_matches(name, list(_class_by_name), n=3)
+    """Registered names that look like `name`, for "did you mean" messages: first those it
+    is the short name of (`Classification`: pm.annotation.Classification)."""
+    short = [full for full in _class_by_name
+             if full.rpartition(".")[2].lower() == name.rpartition(".")[2].lower()]
+    return list(dict.fromkeys(short + difflib.get_close_matches(name, list(_class_by_name),
+                                                               n=3)))[:3]

@@ -41,6 +41,22 @@ def test_post_one_scene_then_again(client, store):
     assert again["scene_id"] == stored["scene_id"] and not again["created"]
 
 
+def test_every_annotation_posted_is_named_by_the_id_at_its_place(client, store):
+    """Annotations of another program's types get ids too: the answer's annotation_ids were
+    those of ours alone, so a client's i-th id named another annotation."""
+    scene = valid_scene(seed=2, timestamp=STAMP + 5)
+    grip = {"_type": "acme.annotation.Grip", "force": 3.5}
+    kept = scene["clusters"][0]["annotations"][:2]
+    scene["clusters"][0]["annotations"] = [grip, kept[0], dict(grip, force=4.0), kept[1]]
+    first = client.post("/api/scenes", json=scene).json()["scenes"][0]
+    ids = first["annotation_ids"][0]
+    stored = store.clusters.find_one({"_id": ObjectId(first["cluster_ids"][0])})["annotations"]
+    assert len(ids) == 4 and [str(a["_id"]) for a in stored] == ids
+    assert [a.get("force") for a in stored] == [3.5, None, 4.0, None]
+    again = client.post("/api/scenes", json=scene).json()["scenes"][0]
+    assert not again["created"] and again["annotation_ids"][0] == ids
+
+
 def test_post_a_batch(client):
     batch = [valid_scene(seed=i, timestamp=STAMP + 10 + i) for i in range(3)]
     response = client.post("/api/scenes", json=batch)

@@ -154,7 +154,8 @@ def id_snapshot(scene: Scene) -> IdSnapshot:
     items: IdSnapshot = [(scene, "id", scene.id)]
     for cluster in scene.clusters:
         items += [(cluster, "id", cluster.id), (cluster, "scene_id", cluster.scene_id)]
-        items += [(a, "id", a.id) for a in cluster.annotations if isinstance(a, Annotation)]
+        items += [(a, "id", a.id) if isinstance(a, Annotation) else (a, "fields", dict(a.fields))
+                  for a in cluster.annotations]
     return items
 
 
@@ -173,16 +174,15 @@ def assign_ids(scene: Scene) -> SceneIds:
     for cluster in scene.clusters:
         ids.cluster_ids.append(cluster.ensure_id())
         cluster.scene_id = ids.scene_id
-        found = map(annotation_id, cluster.annotations)
-        ids.annotation_ids.append([annotation for annotation in found if annotation is not None])
+        ids.annotation_ids.append([annotation_id(a) for a in cluster.annotations])
     return ids
 
 
 def annotation_id(annotation: Annotation | Unknown):
-    """The id of an annotation, assigned if it is one of ours; a foreign (Unknown) annotation
-    has the id it was stored with, if any. The same rule as `stored_ids` reads back."""
+    """The id of an annotation, assigned where it has none: a foreign (Unknown) one's `_id`
+    too, so that each annotation a scene is stored with is named by the id at its place."""
     if isinstance(annotation, Unknown):
-        return annotation.fields.get("_id")
+        return annotation.fields.setdefault("_id", ObjectId())
     return annotation.ensure_id()
 
 

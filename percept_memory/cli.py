@@ -807,11 +807,17 @@ def _query_command(name: str, model) -> click.Command:
     def run(settings: Settings, as_json: bool, **given: Any) -> None:
         from percept_memory import answers
         from percept_memory.memory.store import MemoryStore
-        from percept_memory.queries.engine import QueryEngine
+        from percept_memory.queries.engine import QueryEngine, rebuilding_for
 
         question = model_from_options(model, given)
         with MemoryStore.open(settings) as store:
+            rebuilt = set(rebuilding_for(store.db, name, question))
             answer = getattr(QueryEngine(store, settings), name)(question)
+            rebuilt |= set(rebuilding_for(store.db, name, question))
+        if rebuilt:
+            click.echo(f"Warning: the belief of {', '.join(sorted(rebuilt))} is being rebuilt: "
+                       "this answer holds only the scenes consolidated so far (`pmem pipeline` "
+                       "shows how far)", err=True)
         if as_json:
             click.echo(answers.as_json(answer))
         elif answer == []:
@@ -972,7 +978,7 @@ def _made(make, *args) -> None:
             made = make(store, *args)
         except curation.NotCorrectable as error:
             raise click.ClickException(str(error)) from None
-        rebuilt = rebuilding(store)
+        rebuilt = rebuilding(store.db)
     click.echo(f"{curation.KINDS[made.type_name]} {made.id} by {made.author}")
     if rebuilt:  # (who is who changed: the belief follows once a consolidator runs)
         click.echo(f"the belief of {', '.join(rebuilt)} is rebuilt with it by the memory "

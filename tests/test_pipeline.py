@@ -832,3 +832,40 @@ def test_a_scene_log_of_stored_scenes_is_decided_alike_again(empty, week, mongo_
         assert canonical_belief(copied) == canonical_belief(empty)
     finally:
         MongoClient(mongo_uri).drop_database(copy)
+
+
+def test_a_belief_answer_read_while_its_map_is_rebuilt_says_so(empty, week, mongo_uri, db_name):
+    """A late scene rebuilds its map's belief from the start; meanwhile where-is answered
+    from a belief months behind (4,000 scenes: a minute) with nothing to tell it apart."""
+    from click.testing import CliRunner
+    from fastapi.testclient import TestClient
+
+    from percept_memory.cli import main
+    from percept_memory.memory.settings import Settings
+    from percept_memory.webui.app import create_app
+    from percept_memory.webui.queries import REBUILDING_HEADER
+
+    ingest_consolidated(empty, week.scenes[:20])
+    client = TestClient(create_app(empty, Settings(consolidator=False)), base_url=LOCAL)
+    env = {"MONGODB_URI": mongo_uri, "PMEM_DB": db_name}
+
+    def told() -> tuple[str | None, str | None, str | None]:
+        answer = client.get("/api/where-is", params={"x": "ketchup"})
+        other = client.get("/api/clusters", params={"limit": 1})  # not the belief's
+        shown = CliRunner().invoke(main, ["query", "what-is-at", "--map", kitchen_week.MAP],
+                                   env=env)
+        warning = next((line for line in shown.stderr.splitlines()
+                        if line.startswith("Warning:")), None)
+        return answer.headers.get(REBUILDING_HEADER), other.headers.get(REBUILDING_HEADER), warning
+
+    assert told() == (None, None, None)
+    request_rebuild(empty)
+    header, other, warning = told()
+    assert header == kitchen_week.MAP and other is None
+    assert "is being rebuilt" in client.get("/map", params={"map": kitchen_week.MAP}).text
+    assert warning == (f"Warning: the belief of {kitchen_week.MAP} is being rebuilt: this answer "
+                       "holds only the scenes consolidated so far (`pmem pipeline` shows how "
+                       "far)")
+    memory_pipeline(empty).drain(timeout=600)
+    assert told() == (None, None, None)
+    assert "is being rebuilt" not in client.get("/map", params={"map": kitchen_week.MAP}).text

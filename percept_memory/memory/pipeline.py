@@ -645,10 +645,11 @@ def retry_held(store: MemoryStore) -> int:
 REBUILDING = {"$or": [{"rebuild": True}, {"catch_up": {"$ne": None}}]}
 
 
-def rebuilding(store: MemoryStore, map_name: str | None = None) -> list[str]:
-    """The maps being rebuilt (of these, if a map is named)."""
+def rebuilding(db, map_name: str | None = None) -> list[str]:
+    """The maps of the database whose belief is being rebuilt (of this one, if named): their
+    answers hold the scenes consolidated so far."""
     named = {} if map_name is None else {"_id": map_name}
-    return sorted(store.db[MAPS].distinct("_id", {**named, **REBUILDING}))
+    return sorted(db[MAPS].distinct("_id", {**named, **REBUILDING}))
 
 
 def status(store: MemoryStore, held_limit: int = 50) -> dict:

@@ -15,6 +15,7 @@ from typing import Any, TypeVar
 
 from pydantic import BaseModel
 
+from percept_memory.memory.pipeline import rebuilding
 from percept_memory.memory.settings import Settings
 
 from . import annotators, questions, stats
@@ -53,6 +54,19 @@ QUERIES: dict[str, tuple[type[BaseModel], Any]] = {
 }
 """Every query by name: the model of its question and the plan that answers it. The HTTP
 API and the CLI are generated from this table."""
+
+BELIEF_QUERIES = frozenset({"where_is", "where_was", "last_seen", "what_is_at", "changes",
+                            "cooccurrence"})
+"""The queries answered from the belief: while a map's is being rebuilt (a late scene, a
+correction, `pmem reconsolidate`), their answers hold only the scenes consolidated so far."""
+
+
+def rebuilding_for(db, name: str, query: BaseModel) -> list[str]:
+    """The maps being rebuilt whose belief the query reads (none, unless it reads one)."""
+    if name not in BELIEF_QUERIES:
+        return []
+    map_name = getattr(query, "map", None)
+    return rebuilding(db, map_name if isinstance(map_name, str) else None)
 
 
 def as_model(model: type[M], query: M | None, fields: dict) -> M:

@@ -36,6 +36,7 @@ from fastapi.responses import HTMLResponse
 from pydantic import TypeAdapter, ValidationError
 from pymongo import ASCENDING, DESCENDING
 
+from percept_memory.memory.pipeline import rebuilding
 from percept_memory.memory.schema import EVENTS, MAPS, OBJECTS
 from percept_memory.memory.store import MemoryStore
 from percept_memory.queries.engine import QueryEngine
@@ -372,10 +373,11 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
                                   now=moment >= span[1])
             solid = scene3d.map_view(region_boxes(store, chosen), engine.what_is_at(
                 map=chosen, t=moment).objects) if in_3d else None
-            return belief, _neighbours(store, chosen, moment), solid
+            return (belief, _neighbours(store, chosen, moment), solid,
+                    rebuilding(store.db, chosen))
 
         try:
-            belief, (earlier, later), solid = await run_in_threadpool(load)
+            belief, (earlier, later), solid, being_rebuilt = await run_in_threadpool(load)
         except QueryError as error:
             raise PageError(503, str(error)) from None
         kept = [("map", chosen), *([("box", str(zoomed))] if zoomed else [])]  # by the links
@@ -384,6 +386,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
             else [], "span": span, "t": moment,
             "belief": belief, "axis": time_axis.axis(*span, moment, WIDTH),
             "earlier": earlier, "later": later, "second": SECOND, "view3d": solid,
+            "rebuilding": bool(being_rebuilt),
         }, policy=SCRIPT_CSP if in_3d else CSP)
 
     return router

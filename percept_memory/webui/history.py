@@ -73,7 +73,7 @@ def routes(store: MemoryStore) -> APIRouter:
                                        TRACK_WIDTH, TRACK_HEIGHT)
             candidates = curation.merge_candidates(store, believed, history)
             return (believed, history, view, regions, track(view, placed), candidates,
-                    bool(rebuilding(store, believed.get("map"))))
+                    bool(rebuilding(store.db, believed.get("map"))))
 
         loaded = await run_in_threadpool(load)
         if isinstance(loaded, ObjectId):

@@ -8,21 +8,24 @@ named), 404 for an unknown object or cluster, 413 for a body over the limit.
 
 import typing
 from typing import Annotated, Any
+from urllib.parse import quote
 
-from fastapi import APIRouter, Body, Depends, Request
+from fastapi import APIRouter, Body, Depends, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException
 
 from percept_memory.memory.errors import NotFound
-from percept_memory.queries.engine import QUERIES, QueryEngine
+from percept_memory.queries.engine import QUERIES, QueryEngine, rebuilding_for
 from percept_memory.queries.ops import QueryError
 from percept_memory.queries.params import from_params, is_list
 
 from .errors import READ_ERRORS, WRITE_ERRORS
 
 MAX_QUERY_BYTES = 64 * 1024
+# on a belief's answer read while a map's belief was being rebuilt: which maps (README)
+REBUILDING_HEADER = "X-Belief-Rebuilding"
 PATHS = {"annotation_stats": "stats/annotations", "cooccurrence": "stats/cooccurrence",
          "timings": "stats/timings", "annotator_report": "annotators",
          "annotator_clusters": "annotators/clusters"}
@@ -31,26 +34,32 @@ PATHS = {"annotation_stats": "stats/annotations", "cooccurrence": "stats/cooccur
 def query_router(engine: QueryEngine) -> APIRouter:
     router = APIRouter(prefix="/api", tags=["queries"])
     for name, (model, plan) in QUERIES.items():
-        _add_routes(router, getattr(engine, name), model, plan,
+        _add_routes(router, engine, name, model, plan,
                     "/" + PATHS.get(name, name.replace("_", "-")))
     return router
 
 
-def _add_routes(router: APIRouter, run, model: type[BaseModel], plan, path: str) -> None:
+def _add_routes(router: APIRouter, engine: QueryEngine, name: str, model: type[BaseModel], plan,
+                path: str) -> None:
     answer = typing.get_args(typing.get_type_hints(plan)["return"])[-1]
     doc = (plan.__doc__ or "").strip()
     summary = doc.split("\n\n")[0].split(". ")[0].replace("\n", " ")
+    run = getattr(engine, name)
 
-    async def answer_query_string(request: Request) -> Any:
+    def rebuilt(query: BaseModel) -> list[str]:
+        return rebuilding_for(engine.runner.db, name, query)
+
+    async def answer_query_string(request: Request, response: Response) -> Any:
         try:
             query = from_params(model, request.query_params.multi_items())
         except ValidationError as error:
             raise RequestValidationError(error.errors(include_url=False)) from None
-        return await run_in_threadpool(_answered, run, query)
+        return await run_in_threadpool(_answered, run, rebuilt, query, response)
 
     async def answer_json_body(query: Annotated[model, Body()],  # type: ignore[valid-type]
-                               _: Annotated[None, Depends(small_body)]) -> Any:
-        return await run_in_threadpool(_answered, run, query)
+                               _: Annotated[None, Depends(small_body)],
+                               response: Response) -> Any:
+        return await run_in_threadpool(_answered, run, rebuilt, query, response)
 
     router.add_api_route(path, answer_query_string, methods=["GET"], response_model=answer,
                          summary=summary, description=doc, responses=READ_ERRORS,
@@ -62,13 +71,19 @@ def _add_routes(router: APIRouter, run, model: type[BaseModel], plan, path: str)
                          operation_id=f"post_{path.strip('/').replace('/', '_')}")
 
 
-def _answered(run, query: BaseModel) -> Any:
+def _answered(run, rebuilt, query: BaseModel, response: Response) -> Any:
+    """The answer; one read from a belief while its map was being rebuilt (as it began or
+    ended) says so in REBUILDING_HEADER: the maps, percent-encoded, comma-separated."""
+    maps = set(rebuilt(query))
     try:
-        return run(query)
+        answer = run(query)
     except NotFound as error:
         raise HTTPException(404, str(error)) from None
     except QueryError as error:
         raise HTTPException(422, str(error)) from None
+    if maps := sorted(maps | set(rebuilt(query))):
+        response.headers[REBUILDING_HEADER] = ",".join(quote(m, safe="") for m in maps)
+    return answer
 
 
 def small_body(request: Request) -> None:

@@ -209,7 +209,13 @@ def test_ndjson_is_taken_by_post_scenes_only(client):
 def test_a_configured_token_guards_writes(store):
     guarded = TestClient(create_app(store, Settings(token="s3cret")), base_url=LOCAL)
     scene = valid_scene(seed=8, timestamp=STAMP + 90)  # (a time of its own: a scene's name)
-    assert guarded.post("/api/scenes", json=scene).status_code == 401
+    missing = guarded.post("/api/scenes", json=scene)
+    assert missing.status_code == 401
+    assert missing.headers["WWW-Authenticate"].startswith("Bearer ")  # (RFC 9110: a 401 has it)
+    bare = guarded.post("/api/scenes", json=scene, headers={"Authorization": "s3cret"})
+    assert bare.status_code == 401 and "WWW-Authenticate" in bare.headers
+    assert "send Authorization: Bearer <token>" in bare.json()["error"]["message"]
+    assert "s3cret" not in bare.text
     wrong = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer nope"})
     assert wrong.status_code == 403
     right = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer s3cret"})

@@ -95,7 +95,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> JSONResponse:
-        return error_response(error.status, error.message, error.problems)
+        return error_response(error.status, error.message, error.problems, error.headers)
 
     @app.exception_handler(StoreError)
     async def _store_error(request: Request, error: StoreError) -> JSONResponse:

@@ -19,9 +19,11 @@ from percept_memory.memory.errors import (
 
 
 class ApiError(Exception):
-    def __init__(self, status: int, message: str, problems: list | None = None):
+    def __init__(self, status: int, message: str, problems: list | None = None,
+                 headers: Mapping[str, str] | None = None):
         super().__init__(message)
         self.status, self.message, self.problems = status, message, problems or []
+        self.headers = headers
 
 
 def error_response(status: int, message: str, problems: list | None = None,

@@ -92,15 +92,22 @@ class Guard:
         return None
 
 
+CHALLENGE = {"WWW-Authenticate": 'Bearer realm="percept-memory writes"'}  # RFC 6750
+
+
 def authorise(request: Request, token: str | None) -> None:
     """Let a write through when it carries the write token, or none is configured."""
     if token is None:
         return
     given = request.headers.get("authorization", "")
     if not given:
-        raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>")
+        raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>",
+                       headers=CHALLENGE)
     scheme, _, value = given.partition(" ")
-    if scheme.lower() != "bearer" or not secrets.compare_digest(value.encode(), token.encode()):
+    if scheme.lower() != "bearer":
+        raise ApiError(401, "the write token goes after the scheme: send Authorization: "
+                            "Bearer <token>", headers=CHALLENGE)  # (what came is not echoed)
+    if not secrets.compare_digest(value.encode(), token.encode()):
         raise ApiError(403, "the write token is not valid")
 
 

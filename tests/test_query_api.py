@@ -215,6 +215,15 @@ def test_a_time_printed_to_the_nanosecond_is_read_back_to_the_nanosecond(
     assert nanoseconds(seen, "t") == seen_ns  # the pages' reading of a time
 
 
+def test_a_utc_offset_sent_unencoded_is_named_and_a_lowercase_z_is_utc(client):
+    """A + in a query string arrives as a space ("08:30 01:00"): the 422 says to write %2B."""
+    spaced = client.get(path("what-is-at") + "?region=shelf&t=2024-03-06T08:30+01:00")
+    assert spaced.status_code == 422 and "write it %2B" in spaced.text
+    encoded = client.get(path("what-is-at") + "?region=shelf&t=2024-03-06T08:30%2B01:00")
+    lower = client.get(path("what-is-at"), params={"region": "shelf", "t": "2024-03-06T07:30z"})
+    assert encoded.json()["t"] == lower.json()["t"] == 1709710200 * 10**9
+
+
 def test_a_question_about_now_says_null_for_its_time_not_int64s_top(client):
     now = client.get(path("what-is-at"), params={"region": "shelf"}).json()
     assert now["t"] is None and now["objects"]

@@ -55,6 +55,9 @@ MAX_ANSWERS = 50
 Name = Annotated[str, StringConstraints(min_length=1, max_length=200)]
 
 
+SPACED_OFFSET = re.compile(r"\d \d\d(:?\d\d)?$")  # 08:00 01:00: a + the URL turned to a space
+
+
 def _nanoseconds(value: Any) -> Any:
     """A time given as nanoseconds since the epoch (int or digits) or ISO 8601 (naive is UTC)."""
     if isinstance(value, datetime):
@@ -66,8 +69,10 @@ def _nanoseconds(value: Any) -> Any:
             try:
                 value = timestamp_from_iso(value)
             except ValueError:
+                plus = (" (a + in a URL's query string is read as a space: write it %2B)"
+                        if SPACED_OFFSET.search(value) else "")
                 raise ValueError(f"expected nanoseconds since the epoch or an ISO 8601 time "
-                                 f"such as 2024-03-05T08:00, got {value!r}") from None
+                                 f"such as 2024-03-05T08:00, got {value!r}{plus}") from None
     if isinstance(value, bool):
         raise ValueError("expected a time, got a boolean")
     if isinstance(value, int) and not 0 <= value < 2**63:  # (said as times, not as 2**63)

@@ -104,6 +104,8 @@ def timestamp_from_iso(text: str) -> int:
     of its fraction of a second kept: a datetime keeps six, and a time printed to the
     nanosecond must find the scene it names. Raises ValueError."""
     text = text.strip()
+    if text.endswith("z"):  # (RFC 3339 allows a lowercase one)
+        text = text[:-1] + "Z"
     nanoseconds = 0
     if fraction := FRACTION.search(text):
         digits = fraction.group(2)

@@ -4,7 +4,9 @@ and asked which objects the home has and whether an observation was seen before.
 from __future__ import annotations
 
 import json
+import re
 from collections import Counter
+from html import unescape
 
 import pytest
 from bson import ObjectId
@@ -206,6 +208,18 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     listed = client.get("/api/catalogue", params={"limit": 3})
     assert listed.status_code == 200
     assert listed.json()["entries"] == catalogue.entries(store, limit=3)
+    every = catalogue.entries(store, limit=1000)
+    assert listed.json()["total"] == len(every) > 6
+    rest = client.get("/api/catalogue", params={"limit": 1000, "offset": 3}).json()["entries"]
+    assert [e["entry"] for e in listed.json()["entries"] + rest] == [e["entry"] for e in every]
+    # the page showed the 100 most seen of 389 with no word of the rest: its pages reach all
+    shown, url = [], "/catalogue?limit=3"
+    while url:
+        html = client.get(url).text
+        assert f" of {len(every)}." in html
+        shown += re.findall(r'<tr id="entry-([0-9a-f]{24})">', html)
+        url = (found := re.search(r'<a href="([^"]+)" rel="next">', html)) and unescape(found[1])
+    assert shown == [str(e["entry"]) for e in every]
     view = listed.json()["entries"][0]["views"][0]
     ranked = client.get(f"/api/catalogue/seen-before/{view}").json()["entries"]
     assert ranked == catalogue.seen_before(store, _object_id(view))

@@ -25,8 +25,9 @@ VIEWS_SHOWN = 4
 
 
 def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
-            only: list[ObjectId] | None = None) -> list[dict]:
-    """The catalogue's entries (of one map, or these), the most seen first."""
+            only: list[ObjectId] | None = None, offset: int = 0) -> list[dict]:
+    """The catalogue's entries (of one map, or these), the most seen first: `limit` of them
+    after the first `offset`."""
     match: dict = {} if map_name is None else {"map": map_name}
     if only is not None:
         match["entry"] = {"$in": only}
@@ -42,7 +43,13 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
     sightings = _sightings(store, object_ids, seen)
     out = [_entry(group, objects, sightings[_key(group["_id"])]) for group in groups]
     out.sort(key=lambda e: (-e["times_seen"], e["entry"]))
-    return out[:limit]
+    return out[offset:offset + limit]
+
+
+def count_entries(store: MemoryStore, map_name: str | None = None) -> int:
+    """How many entries the catalogue has (of one map)."""
+    return len(store.db[CATALOGUE].distinct("entry", {} if map_name is None else
+                                            {"map": map_name}))
 
 
 def _key(entry: dict) -> tuple:

@@ -48,16 +48,19 @@ def catalogue_router(store: MemoryStore) -> APIRouter:
     router.include_router(_api(store))
 
     @router.get("/catalogue", include_in_schema=False, response_class=HTMLResponse)
-    async def catalogue_page(request: Request, map: str | None = None, limit: str = "100"
-                             ) -> HTMLResponse:
+    async def catalogue_page(request: Request, map: str | None = None, limit: str = "100",
+                             offset: str = "0") -> HTMLResponse:
         limit = bounded_int(limit, "limit", 1, 1000)  # (a page's own 422, not the API's JSON)
-        found, changes = await run_in_threadpool(
-            lambda: (catalogue.entries(store, map or None, limit),
+        offset = bounded_int(offset, "offset", 0, 10**9)
+        found, total, changes = await run_in_threadpool(
+            lambda: (catalogue.entries(store, map or None, limit, offset=offset),
+                     catalogue.count_entries(store, map or None),
                      catalogue.history(store, map or None, CHANGES_SHOWN)))
         for entry in found:
             entry["drawing"] = ring_drawing(entry["graph"])
-        return page(request, "catalogue.html", {"entries": found, "changes": changes,
-                                                "map_name": map})
+        return page(request, "catalogue.html", {
+            "entries": found, "changes": changes, "map_name": map, "total": total,
+            "offset": offset, "limit": limit})
 
     return router
 
@@ -71,14 +74,18 @@ def _api(store: MemoryStore) -> APIRouter:
     async def entries(
         map: Annotated[str | None, Query(description="only this map's entries")] = None,
         limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+        offset: Annotated[int, Query(ge=0, description="entries skipped, the most seen")] = 0,
     ) -> dict[str, Any]:
-        """Each entry is an object learnt from its views, the most seen first: `views` (the
+        """`total` entries, `limit` of them after the first `offset`. Each entry is an object
+        learnt from its views, the most seen first: `views` (the
         clusters its models began with, the longest look first), `names`, the belief `objects`
         whose tracks it gathers, `times_seen` (how often they were seen, shared with the other
         entries holding their models), where it is `now`
         (the one seen last) and its `graph`: its partial models and the similarity links
         between them."""
-        return {"entries": await run_in_threadpool(catalogue.entries, store, map, limit)}
+        return await run_in_threadpool(lambda: {
+            "total": catalogue.count_entries(store, map),
+            "entries": catalogue.entries(store, map, limit, offset=offset)})
 
     @router.get("/history", summary="The catalogue's entries that merged or split",
                 responses=READ_ERRORS)

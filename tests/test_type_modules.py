@@ -14,7 +14,10 @@ import urllib.request
 import pytest
 from pymongo import MongoClient
 
+from percept_memory.converters import Unknown
 from percept_memory.ingest.json_batches import PARALLEL_BYTES
+from percept_memory.memory.store import CLIENT_OPTIONS, MemoryStore
+from percept_memory.memory.types import Cluster, Scene
 
 from .test_json_workers import body_of
 from .test_readme import free_port, wait_until_serving
@@ -83,7 +86,18 @@ def test_the_server_its_workers_and_the_cli_know_the_types_pmem_types_names(
     assert "Traceback" not in server.stderr.read()
     try:  # the CLI: `pmem reindex` works the labels out again, from the class
         MongoClient(mongo_uri)[db]["clusters"].update_many({}, {"$set": {"search.labels": []}})
-        assert pmem(env, "reindex").returncode == 0
+        # and one stored by a process that knew no such type, which does not fit it
+        unfit = {"_type": "lab.annotation.Heft", "source": "Scale", "grams": "a lot"}
+        store = MemoryStore(MongoClient(mongo_uri, **CLIENT_OPTIONS), db, gridfs_threshold=2048)
+        ids = store.put_scene(Scene(timestamp=1, robot="scale", clusters=[
+            Cluster(annotations=[Unknown(type_name=unfit["_type"], fields=unfit)])]))
+        done = pmem(env, "reindex")
+        assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+        assert ("Warning: 1 annotation(s) do not fit their type, such as cluster "
+                f"{ids.cluster_ids[0]}: lab.annotation.Heft: grams: Input should be a valid "
+                "number") in done.stderr
+        kept = store.clusters.find_one({"_id": ids.cluster_ids[0]})["annotations"][0]
+        assert {k: kept[k] for k in unfit} == unfit  # as stored
         found = pmem(env, "query", "clusters", "--labelled", "heavy", "--count", "--limit", "0",
                      "--json")
         assert json.loads(found.stdout)["total"] == 1

@@ -16,6 +16,7 @@ from typing import Any
 import bson
 from bson import ObjectId
 from bson.raw_bson import RawBSONDocument
+from pydantic import ValidationError
 
 from percept_memory.converters import (
     BLOB_KEY,
@@ -24,10 +25,11 @@ from percept_memory.converters import (
     Unknown,
     decode,
     encode,
+    name_of,
 )
 
 from . import search_keys
-from .errors import NotFound, SceneExists
+from .errors import NotFound, SceneExists, problems_line
 from .schema import BINARIES, GRIDFS_CHUNKS, GRIDFS_FILES, LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 from .types.curation import in_force
@@ -468,6 +470,26 @@ def _cluster_fields(doc: Mapping) -> dict:
     if arrived(doc) < len(doc.get("annotations", ())):
         fields[ARRIVED_KEY] = arrived(doc)
     return fields
+
+
+def fitted(cluster: Cluster) -> tuple[Cluster, list[str]]:
+    """The cluster with each annotation of a registered type checked against its class, and
+    what did not fit. Reading trusts what was validated when it was stored; one stored before
+    its class was imported (as another program's) was not, and may not fit: it is kept as
+    stored, an Unknown saying why, not read into a class whose labels() it would break."""
+    kept, problems = [], []
+    for annotation in cluster.annotations:
+        if isinstance(annotation, Annotation):
+            kind = type(annotation)
+            try:
+                kind.model_validate({k: getattr(annotation, k) for k in kind.model_fields})
+            except ValidationError as error:
+                problem = f"{name_of(kind)}: {problems_line(error)}"
+                annotation = Unknown.model_construct(type_name=name_of(kind),
+                                                     fields=encode(annotation), problem=problem)
+                problems.append(problem)
+        kept.append(annotation)
+    return (cluster.model_copy(update={"annotations": kept}) if problems else cluster), problems
 
 
 def decode_cluster(doc: Mapping, blobs: Mapping[str, bytes]) -> Cluster:

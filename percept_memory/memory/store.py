@@ -9,6 +9,7 @@ the document layout in documents.py and do only the I/O here.
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 from collections import OrderedDict
@@ -67,6 +68,8 @@ from .settings import Settings
 from .types import Annotation, Cluster, Scene
 
 CLIENT_OPTIONS = {"tz_aware": True, "appname": "percept-memory"}
+log = logging.getLogger(__name__)
+
 ClusterChange = Callable[[Cluster], Cluster | None]
 AfterRewrite = Callable[[list, Cluster, object], None]
 
@@ -500,15 +503,24 @@ class MemoryStore(StoreBase):
         """Recompute what is derived from the stored data (every cluster's search keys, every
         scene's summary, the vocabulary) after an upgrade changed how it is derived: data
         stored by an older version then answers every query. Returns the clusters rewritten."""
-        count = 0
+        count, unfit = 0, []
         for scene in self.scenes.find({}, {"map": 1}):  # (clusters stored before knew no map)
             self.clusters.update_many({"scene_id": scene["_id"]},
                                       {"$set": {"search.map": scene.get("map")}})
+
+        def fitted(cluster: Cluster) -> Cluster:
+            cluster, problems = docs.fitted(cluster)
+            unfit.extend(f"cluster {cluster.id}: {problem}" for problem in problems)
+            return cluster
+
         for doc in self.clusters.find({}, {"_id": 1}).sort("_id", 1):
-            self._rewrite_cluster(doc["_id"], lambda cluster: cluster)
+            self._rewrite_cluster(doc["_id"], fitted)
             count += 1
             if progress:
                 progress()
+        if unfit:
+            log.warning("%d annotation(s) do not fit their type, such as %s; kept as stored, "
+                        "without the labels and texts of their type", len(unfit), unfit[0])
         for doc in self.scenes.find({}, {"_id": 1}).sort("_id", 1):
             self._transaction(lambda session, scene_id=doc["_id"]:
                               self._summarise(scene_id, session))

@@ -114,8 +114,8 @@ def cell(value: Any, moment: bool = False) -> str:
         return "-"
     if moment:
         return iso(value, precise=False)
-    if isinstance(value, float):
-        return f"{value:.3f}".rstrip("0").rstrip(".")
+    if isinstance(value, float):  # (millimetres; beyond a million metres, in e-notation)
+        return f"{value:.3f}".rstrip("0").rstrip(".") if abs(value) < 1e6 else f"{value:.4g}"
     if isinstance(value, tuple):
         return "(" + ", ".join(cell(item) for item in value) + ")"
     if isinstance(value, list):

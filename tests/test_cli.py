@@ -408,3 +408,11 @@ def test_the_served_socket_turns_nagle_off_for_each_connection():
             server.close()
 
     assert asyncio.run(accepted_nodelay()) != 0
+
+
+def test_a_far_coordinate_is_printed_short():
+    """Any finite coordinate is stored (UTM, or 1e300); a table printed 1e300 with 300 digits."""
+    from percept_memory.answers import cell
+
+    assert [cell(v) for v in (1e300, -2.5e7, 455_000.1234, 0.5)] == [
+        "1e+300", "-2.5e+07", "455000.123", "0.5"]

@@ -269,6 +269,25 @@ def test_what_is_at_any_past_moment_includes_hidden_objects(engine, store, kitch
     assert hidden_seen > 50
 
 
+def test_an_object_is_at_its_place_since_it_came_there_as_where_was_says(engine, store,
+                                                                          kitchen):
+    """`since` was the time of its latest event (a stay an hour ago), not when it came."""
+    week, _ = kitchen
+    later = 0
+    for scene in week.truth.scenes[5::23]:
+        t = scene.time + 45 * kw.SECOND
+        for o in engine.what_is_at(map=kw.MAP, t=t).objects:
+            events = list(store.db.events.find({"object_id": o.object_id,
+                                                "time": {"$lte": t}}).sort("time"))
+            came = [e["time"] for e in events if e["explanation"] in ("appear", "move")]
+            assert o.since == came[-1]
+            (history,) = engine.where_was(str(o.object_id), after=t, before=t)
+            (stay,) = history.places
+            assert stay.since == o.since
+            later += events[-1]["time"] > o.since
+    assert later > 20  # (objects seen again since they came: their latest event is later)
+
+
 def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
     week, _ = kitchen
     t = week.truth.scenes[100].time

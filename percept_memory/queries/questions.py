@@ -179,6 +179,7 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
 
 STAY_FIELDS = {"object_id": 1, "time": 1, "explanation": 1, "region": 1, "position": 1}
 ENDS_A_STAY = ["appear", "move", "disappear"]
+STARTS_A_STAY = ["appear", "move"]
 
 
 def _to_the_end_of_stays(ids: list, before: int) -> Plan[list[dict]]:
@@ -299,7 +300,8 @@ def what_is_at(q: AtTime) -> Plan[Contents]:
     t = NOW if q.t is None else q.t
     believed = yield from latest_events((yield from ever_at(q, t)), t, q)
     names = yield from names_of([e["object_id"] for e in believed])
-    return Contents(t=t, objects=_objects_at(believed, names))
+    began = yield from stays_began([e["object_id"] for e in believed], t)
+    return Contents(t=t, objects=_objects_at(believed, names, began))
 
 
 def changes(q: Between) -> Plan[Changes]:
@@ -317,12 +319,14 @@ def changes(q: Between) -> Plan[Changes]:
                                 "explanation": "move"}, {"object_id": 1})
     moved = {e["object_id"] for e in moves}
     names = yield from names_of([*before, *after])
-    appeared = _objects_at([e for o, e in after.items() if o not in before], names)
+    began_before = yield from stays_began(list(before), q.t1)
+    began = yield from stays_began(list(after), t2)
+    appeared = _objects_at([e for o, e in after.items() if o not in before], names, began)
 
     def pair(o) -> Moved:
         was, now = before[o], after.get(o, went.get(o))
-        return Moved(object_id=o, name=names.get(o), before=object_at(was, names),
-                     after=object_at(now, names) if now else None)
+        return Moved(object_id=o, name=names.get(o), before=object_at(was, names, began_before),
+                     after=object_at(now, names, began) if now else None)
 
     return Changes(t1=q.t1, t2=t2, appeared=appeared, disappeared=[pair(o) for o in gone],
                    moved=[pair(o) for o in stayed if o in moved])
@@ -333,13 +337,27 @@ def names_of(ids: list) -> Plan[dict]:
     return {o["_id"]: o.get("name") for o in found}
 
 
-def _objects_at(events: list[dict], names: dict) -> list[ObjectAt]:
-    return sorted((object_at(e, names) for e in events),
+def _objects_at(events: list[dict], names: dict, began: dict) -> list[ObjectAt]:
+    return sorted((object_at(e, names, began) for e in events),
                   key=lambda o: (o.region or "", o.name or "", str(o.object_id)))
 
 
-def object_at(e: dict, names: dict) -> ObjectAt:
+def stays_began(object_ids: list, t: int) -> Plan[dict]:
+    """When each object came to where it is believed at t: its last appear or move by then."""
+    found = yield Aggregate(EVENTS, [
+        {"$match": {"object_id": {"$in": object_ids}, "time": {"$lte": t},
+                    "explanation": {"$in": STARTS_A_STAY}}},
+        {"$sort": {"object_id": 1, "time": -1}},
+        {"$group": {"_id": "$object_id", "time": {"$first": "$time"}}}])
+    return {doc["_id"]: doc["time"] for doc in found}
+
+
+def object_at(e: dict, names: dict, began: dict | None = None) -> ObjectAt:
+    """The object as event e leaves it; there `since` its stay began (`began`: stays_began),
+    or gone since e itself."""
+    since = e["time"] if e["explanation"] == "disappear" else (began or {}).get(
+        e["object_id"], e["time"])
     return ObjectAt(object_id=e["object_id"], map=e.get("map"), name=names.get(e["object_id"]),
                     state=STATE_OF[e["explanation"]], region=e.get("region"),
-                    position=e.get("position"), since=e["time"], explanation=e["explanation"],
+                    position=e.get("position"), since=since, explanation=e["explanation"],
                     cluster_id=e.get("cluster_id"))

@@ -136,8 +136,8 @@ class ObjectAt(BaseModel):
     state: State
     region: str | None = None
     position: Position | None = None
-    since: Nanoseconds  # time of the event that made it so
-    explanation: str  # that event's explanation: appear, stay, move, newview, hidden, ...
+    since: Nanoseconds  # when it came there (its appear or move); disappeared: when found gone
+    explanation: str  # the latest event's explanation: appear, stay, move, newview, hidden, ...
     # the observation that made it so; none when the event was no observation (its place
     # seen without it: hidden, gone): where_was and last_seen give its last one
     cluster_id: Id | None = None

@@ -9,6 +9,7 @@ import re
 from collections import Counter
 from datetime import UTC, datetime
 
+import numpy as np
 import pytest
 from bson import ObjectId
 from pydantic import ValidationError
@@ -479,6 +480,32 @@ def test_where_was_lists_the_places_of_an_object_in_time_order(engine, store, ki
                       and (p.until is None or p.until >= middle.since)]
     with pytest.raises(ValidationError, match="later than"):
         engine.where_was("fairy", after=after, before=after - 1)
+
+
+def test_a_place_is_where_the_object_was_seen_there_on_average(engine, store, kitchen,
+                                                                monkeypatch):
+    """A place kept its first sighting's position; the place it is at now disagreed with
+    where-is. The latest MAX_PLACES places are listed, and how many earlier were left out."""
+    from percept_memory.queries import questions
+
+    varied = 0
+    for believed in store.db.objects.find({"map": kw.MAP}):
+        (history,) = engine.where_was(str(believed["_id"]))
+        *past, now = history.places
+        assert now.until is not None or list(now.position) == believed["position"]
+        events = list(store.db.events.find({"object_id": believed["_id"]}).sort("time"))
+        for place in past:
+            seen = [e["position"] for e in events if place.since <= e["time"] < place.until
+                    and e["explanation"] in ("appear", "move", "stay", "newview")]
+            assert place.position == pytest.approx(np.mean(seen, axis=0))
+            varied += len({tuple(p) for p in seen}) > 1
+    assert varied > 10
+    histories = [engine.where_was(str(o["_id"]))[0] for o in store.db.objects.find()]
+    history = max(histories, key=lambda h: len(h.places))
+    monkeypatch.setattr(questions, "MAX_PLACES", 2)
+    (capped,) = engine.where_was(str(history.object.object_id))
+    assert capped.places == history.places[-2:]
+    assert capped.earlier_places == len(history.places) - 2 > 0
 
 
 # --- statistics -----------------------------------------------------------------------------

@@ -170,16 +170,23 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
     by_object: dict = {}
     for event in sorted(events, key=lambda e: e["time"]):  # oldest first
         by_object.setdefault(event["object_id"], []).append(event)
-    return [HistoryAnswer(object=_belief(o, match), places=[
-        stay for stay in stays(by_object.get(o["_id"], []))
-        if (q.after is None or stay.until is None or stay.until >= q.after)
-        and (q.before is None or stay.since <= q.before)])
-        for o, match in found]
+    answers = []
+    for o, match in found:
+        places = [stay for stay in stays(by_object.get(o["_id"], []))
+                  if (q.after is None or stay.until is None or stay.until >= q.after)
+                  and (q.before is None or stay.since <= q.before)]
+        if places and places[-1].until is None and o.get("position") is not None:
+            places[-1].position = tuple(o["position"])  # where it is now: its own estimate
+        answers.append(HistoryAnswer(object=_belief(o, match), places=places[-MAX_PLACES:],
+                                     earlier_places=max(len(places) - MAX_PLACES, 0)))
+    return answers
 
 
 STAY_FIELDS = {"object_id": 1, "time": 1, "explanation": 1, "region": 1, "position": 1}
 ENDS_A_STAY = ["appear", "move", "disappear"]
 STARTS_A_STAY = ["appear", "move"]
+SIGHTINGS = ("appear", "move", "stay", "newview")  # the events of an observation
+MAX_PLACES = 200  # an object's places in a where-was answer, the latest (README)
 
 
 def _to_the_end_of_stays(ids: list, before: int) -> Plan[list[dict]]:
@@ -200,8 +207,10 @@ def _to_the_end_of_stays(ids: list, before: int) -> Plan[list[dict]]:
 def stays(events: list[dict]) -> list[Stay]:
     """Events of one object, oldest first, as the places it was at: an appear or a move
     starts a stay, stay and newview extend it, hidden marks it unseen (still believed
-    there), disappear or the next move ends it."""
+    there), disappear or the next move ends it. A place's position is the mean of where it
+    was seen there (each sighting is one noisy observation)."""
     out: list[Stay] = []
+    seen_at: list[list] = []  # per stay, the positions of its sightings
     for e in events:
         kind, t = e["explanation"], e["time"]
         current = out[-1] if out and out[-1].until is None else None
@@ -210,10 +219,11 @@ def stays(events: list[dict]) -> list[Stay]:
                 current.until, current.ended_by = t, "move"
             if kind == "disappear":
                 continue
-            current = Stay(region=e.get("region"), position=e.get("position"), since=t,
-                           last_seen=t, observations=int(kind != "hidden"),
+            current = Stay(region=e.get("region"), since=t, last_seen=t,
+                           observations=int(kind != "hidden"),
                            hidden_since=t if kind == "hidden" else None)
             out.append(current)
+            seen_at.append([])
         elif kind in ("stay", "newview"):
             current.last_seen, current.hidden_since = t, None
             current.observations += 1
@@ -221,6 +231,12 @@ def stays(events: list[dict]) -> list[Stay]:
             current.hidden_since = t
         elif kind == "disappear":
             current.until, current.ended_by = t, "disappear"
+        if kind in SIGHTINGS and e.get("position") is not None:
+            seen_at[-1].append(e["position"])
+    for stay, positions in zip(out, seen_at, strict=True):
+        if positions:
+            stay.position = tuple(sum(axis) / len(positions)
+                                  for axis in zip(*positions, strict=True))
     return out
 
 

@@ -124,7 +124,8 @@ class Stay(BaseModel):
 
 class History(BaseModel):
     object: Belief
-    places: list[Stay]
+    places: list[Stay]  # the latest MAX_PLACES, oldest first
+    earlier_places: int = 0  # those before them, left out: a time window reaches them
 
 
 class ObjectAt(BaseModel):

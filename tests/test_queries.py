@@ -458,6 +458,7 @@ def test_where_was_lists_the_places_of_an_object_in_time_order(engine, store, ki
     _, truth_of = kitchen
     (fairy,) = engine.where_is("fairy", limit=1)
     (history,) = engine.where_was(str(fairy.object_id))
+    assert history.object == fairy  # with its confidence and evidence, as where-is says
     places = history.places
     assert places and all(a.since <= a.last_seen <= (a.until or 2**63) <= b.since
                           for a, b in zip(places, places[1:], strict=False))

@@ -134,7 +134,12 @@ def where_is(q: About) -> Plan[list[Belief]]:
     """What the memory believes about the objects X names now: state (present, hidden,
     disappeared), position, region, last seen, the confidence of its last explanation and
     the observations that are the evidence."""
-    found = yield from resolve(q.x, q.limit, q.map)
+    return (yield from beliefs((yield from resolve(q.x, q.limit, q.map))))
+
+
+def beliefs(found: list[tuple[dict, float]]) -> Plan[list[Belief]]:
+    """The objects found, each with the confidence of its last explanation and its latest
+    observations (the evidence)."""
     last = yield from latest_events({"$in": [o["_id"] for o, _ in found]}, NOW)
     confidence = {e["object_id"]: e.get("probability") for e in last}
     out = []
@@ -171,13 +176,13 @@ def where_was(q: History) -> Plan[list[HistoryAnswer]]:
     for event in sorted(events, key=lambda e: e["time"]):  # oldest first
         by_object.setdefault(event["object_id"], []).append(event)
     answers = []
-    for o, match in found:
+    for (o, _), belief in zip(found, (yield from beliefs(found)), strict=True):
         places = [stay for stay in stays(by_object.get(o["_id"], []))
                   if (q.after is None or stay.until is None or stay.until >= q.after)
                   and (q.before is None or stay.since <= q.before)]
         if places and places[-1].until is None and o.get("position") is not None:
             places[-1].position = tuple(o["position"])  # where it is now: its own estimate
-        answers.append(HistoryAnswer(object=_belief(o, match), places=places[-MAX_PLACES:],
+        answers.append(HistoryAnswer(object=belief, places=places[-MAX_PLACES:],
                                      earlier_places=max(len(places) - MAX_PLACES, 0)))
     return answers
 

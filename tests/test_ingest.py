@@ -330,6 +330,38 @@ def test_the_published_schema_is_the_current_one():
     assert published == Scene.model_json_schema(), "run `pmem schema > docs/scene.schema.json`"
 
 
+def test_what_ingests_is_valid_by_the_published_schema_and_mistakes_are_not():
+    """A robot validating before it sends (the schema's purpose) rejected the project's own
+    example: an image's base64 PNG, another program's annotation."""
+    import jsonschema
+
+    schema = json.loads((DOCS / "scene.schema.json").read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    check = jsonschema.Draft202012Validator(schema)
+    example = json.loads((DOCS / "example-scene.json").read_text())
+    with_images = valid_scene(seed=3)  # (its crops and masks: base64 PNGs)
+    foreign = {"_type": "acme.annotation.Grip", "force": {"$numberLong": "5"}}
+    with_images["clusters"][0]["annotations"].append(foreign)
+    for scene in (example, valid_scene(seed=1), with_images):
+        assert not list(check.iter_errors(scene))
+        Scene.model_validate(scene)  # and they ingest
+    crop = ["clusters", 0, "hypotheses", 0, "crop"]
+    wrong = [("no pixels", crop, {"_type": "pm.raw.Image", "encoding": "bgr8"}),
+             ("two forms of pixels", [*crop, "jpeg"], "aGVsbG8="),
+             ("our namespace, no such type", ["clusters", 0, "annotations", 0, "_type"],
+              "pm.annotation.Bogus"),
+             ("a short type name", ["clusters", 0, "annotations", 0, "_type"], "Classification"),
+             ("a time before 1970", ["timestamp"], -1)]
+    for name, path, value in wrong:
+        scene = json.loads(json.dumps(with_images))
+        *parents, last = path
+        target = scene
+        for key in parents:
+            target = target[key]
+        target[last] = value
+        assert list(check.iter_errors(scene)), name
+
+
 def test_the_published_example_ingests(store):
     example = json.loads((DOCS / "example-scene.json").read_text())
     ids = IngestService(store).ingest(example)

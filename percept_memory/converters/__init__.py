@@ -5,6 +5,7 @@ import numpy as np
 from .arrays import NDArrayCodec
 from .blobs import BLOB_KEY, ConversionError, DecodeContext, EncodeContext, content_id
 from .codec import (
+    MAX_TYPE_NAME,
     TYPE_KEY,
     ForeignCodec,
     Unknown,
@@ -30,6 +31,7 @@ register_codec(np.ndarray, NDArrayCodec())
 
 __all__ = [
     "BLOB_KEY",
+    "MAX_TYPE_NAME",
     "TYPE_KEY",
     "ConversionError",
     "DecodeContext",

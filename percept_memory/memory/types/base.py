@@ -29,6 +29,7 @@ from pydantic import (
 from pydantic.fields import FieldInfo
 
 from percept_memory.converters import (
+    MAX_TYPE_NAME,
     Typed,
     Unknown,
     class_for,
@@ -79,6 +80,9 @@ Timestamp = Annotated[
     int,
     BeforeValidator(_an_integer),
     Field(ge=0, le=MAX_TIMESTAMP, description="nanoseconds since the Unix epoch, UTC"),
+    # (pydantic wrote ge and le, which are not JSON Schema, where it is optional)
+    WithJsonSchema({"type": "integer", "minimum": 0, "maximum": MAX_TIMESTAMP,
+                    "description": "nanoseconds since the Unix epoch, UTC"}),
 ]
 """Exact time of a percept: int64 nanoseconds, as RoboSherlock stored it (1970 to 2262)."""
 
@@ -241,9 +245,20 @@ def polymorphic(base: type) -> Any:
         return "unknown" if isinstance(name, str) and class_for(name) is None else "known"
 
     return Annotated[
-        Annotated[SerializeAsAny[base], Tag("known")] | Annotated[Unknown, Tag("unknown")],
+        Annotated[SerializeAsAny[base], Tag("known")]
+        | Annotated[Unknown, Tag("unknown"), WithJsonSchema(FOREIGN_SCHEMA)],
         Discriminator(arm),
     ]
+
+
+FOREIGN_SCHEMA = {
+    "type": "object", "required": ["_type"], "additionalProperties": True,
+    "description": "another program's object (lab.annotation.Weight, RoboSherlock's rs.*): any "
+                   "fields, kept as they are; values JSON has no type for as MongoDB Extended "
+                   "JSON",
+    "properties": {"_type": {"type": "string", "maxLength": MAX_TYPE_NAME,
+                             "pattern": r"^(?!pm\.)[A-Za-z_]\w*(\.[A-Za-z_]\w*)+$"}}}
+"""An Unknown as JSON brings it: the document itself, its `_type` a full name not ours (pm.)."""
 
 
 class Identifiable(Model):

@@ -170,6 +170,22 @@ class Image(Model):
     def _json_fields(self, fields: dict) -> dict:
         return image_to_json(fields, self.data)
 
+    @classmethod
+    def __get_pydantic_json_schema__(cls, core_schema, handler) -> dict:
+        """The forms JSON brings the pixels in, exactly one of them (the model's own field,
+        `data`, is one)."""
+        schema = super().__get_pydantic_json_schema__(core_schema, handler)
+        target = handler.resolve_ref_schema(schema)
+        base64 = {"type": "string", "contentEncoding": "base64"}
+        target["properties"] |= {
+            "png": {**base64, "description": "a PNG file, base64"},
+            "jpeg": {**base64, "description": "a JPEG file, base64"},
+            "path": {"type": "string", "description": "a PNG or JPEG file in the scene-log "
+                                                      "folder, relative to it"}}
+        target.pop("required", None)
+        target["oneOf"] = [{"required": [form]} for form in ("data", "png", "jpeg", "path")]
+        return schema
+
     @field_validator("data")
     @classmethod
     def _image_shaped(cls, data: np.ndarray, info: ValidationInfo) -> np.ndarray:

@@ -57,6 +57,22 @@ def test_every_annotation_posted_is_named_by_the_id_at_its_place(client, store):
     assert not again["created"] and again["annotation_ids"][0] == ids
 
 
+def test_a_stored_scene_and_cluster_are_read_back_as_json(client, store):
+    """A robot could read back what it stored only as HTML pages or through Python."""
+    scene = valid_scene(seed=6, timestamp=STAMP + 6)
+    (stored,) = client.post("/api/scenes", json=scene).json()["scenes"]
+    back = client.get(f"/api/scenes/{stored['scene_id']}")
+    assert back.status_code == 200 and back.json()["_id"] == stored["scene_id"]
+    again = client.post("/api/scenes", json=back.json()).json()["scenes"][0]
+    assert not again["created"] and again["cluster_ids"] == stored["cluster_ids"]
+    cluster = client.get(f"/api/clusters/{stored['cluster_ids'][0]}").json()
+    assert cluster["scene_id"] == stored["scene_id"]
+    assert [a["_id"] for a in cluster["annotations"]] == stored["annotation_ids"][0]
+    missing = client.get(f"/api/scenes/{ObjectId()}")
+    assert missing.status_code == 404 and "error" in missing.json()
+    assert client.get("/api/clusters/nope").status_code == 422
+
+
 def test_post_a_batch(client):
     batch = [valid_scene(seed=i, timestamp=STAMP + 10 + i) for i in range(3)]
     response = client.post("/api/scenes", json=batch)

@@ -47,6 +47,7 @@ from .head import HeadAsGet
 from .html import API_DOCS_CSP, page
 from .pages import mount_pages
 from .queries import query_router
+from .records import records_router
 from .scene3d import cloud_router
 
 
@@ -176,6 +177,7 @@ def create_app(store: MemoryStore, settings: Settings) -> FastAPI:
     app.include_router(query_router(QueryEngine(store, settings)))
     app.include_router(export_router(store, settings))
     app.include_router(cloud_router(store))
+    app.include_router(records_router(store))
     app.include_router(catalogue_router(store))
     app.include_router(similar.routes(store, similarity))
     app.include_router(curation.routes(store, settings))

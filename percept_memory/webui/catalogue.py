@@ -7,7 +7,7 @@ import math
 from typing import Annotated, Any
 
 from bson import ObjectId
-from fastapi import APIRouter, Path, Query, Request
+from fastapi import APIRouter, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse
 
@@ -17,10 +17,10 @@ from percept_memory.queries import catalogue
 
 from .errors import READ_ERRORS
 from .html import bounded_int, page
+from .records import CLUSTER_ID
 
 DRAWING_PX = 72
 CHANGES_SHOWN = 30
-CLUSTER_ID = Path(pattern="^[0-9a-f]{24}$", description="the cluster's id (24 hexadecimal digits)")
 
 
 def ring_drawing(graph: dict, size: float = DRAWING_PX) -> dict:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from bson import ObjectId
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, Query
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import Response
 
@@ -21,8 +21,8 @@ from percept_memory.queries.results import ObjectAt
 
 from .errors import READ_ERRORS
 from .html import PageError
+from .records import SCENE_ID
 
-SCENE_ID = Path(pattern="^[0-9a-f]{24}$", description="the scene's id (24 hexadecimal digits)")
 BINARY = {"content": {"application/octet-stream": {}}, "description": (
     "N points: N little-endian float32 triples x, y, z (metres, in the scene's frame), then N "
     "uint8 triples red, green, blue; N is in the X-Points header")}

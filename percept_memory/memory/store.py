@@ -379,6 +379,11 @@ class MemoryStore(StoreBase):
                         self.commit_scenes(docs.prepared(half, {}, self.gridfs_threshold))]
             self._no_repeats(prepared)
             stored = self._stored(prepared.fresh)
+            every = {docs.scene_key(scene): None for scene in prepared.scenes}
+            if not stored and len(every) < len(prepared.fresh):  # one scene twice, in two
+                docs.undo_ids(prepared, every)  # chunks prepared apart: once, as one write
+                return self.commit_scenes(docs.prepared(prepared.scenes, {},
+                                                        self.gridfs_threshold))
             if not stored:
                 raise self._duplicate(error) from None
             scene_docs = list(self.scenes.find(docs.stored_query(stored)))

@@ -362,7 +362,7 @@ def test_a_scene_handed_over_is_what_identity_reads_back(empty, week):
     rng = np.random.default_rng(3)
     scenes = [*week.scenes[:30], *(synthetic.scene(rng, 10**18 + i, 3) for i in range(5))]
     results = IngestService(empty).ingest_batch([as_json(scene) for scene in scenes])
-    handed = [empty.handed_over.get(ids.scene_id) for ids in results]
+    handed = [empty.handed_over.take(ids.scene_id) for ids in results]
     read = list(Consolidation(elsewhere(empty))._scenes(
         [ids.scene_id for ids in results], None))
     assert len(read) == len(scenes) and all(handed)
@@ -869,3 +869,19 @@ def test_a_belief_answer_read_while_its_map_is_rebuilt_says_so(empty, week, mong
     memory_pipeline(empty).drain(timeout=600)
     assert told() == (None, None, None)
     assert "is being rebuilt" not in client.get("/map", params={"map": kitchen_week.MAP}).text
+
+
+def test_a_rejection_takes_out_a_cluster_this_process_stored_from_json(empty, week):
+    """Scenes made here from JSON are handed to the consolidator as they came (store.
+    handed_over); the rebuild a rejection asks for read that copy again, without the
+    rejection, and kept the rejected cluster in the belief (through HTTP: every rejection)."""
+    from percept_memory.memory import curation
+
+    service = IngestService(empty)
+    service.ingest_batch([as_json(scene) for scene in week.scenes[:12]], wait=60)
+    cluster_id = empty.scenes.find_one({"timestamp": week.scenes[10].timestamp})["clusters"][0]
+    assert empty.clusters.find_one({"_id": cluster_id})["object_id"] is not None
+    curation.reject(empty, cluster_id, author="ana")
+    memory_pipeline(empty).drain(timeout=120)
+    assert empty.clusters.find_one({"_id": cluster_id}).get("object_id") is None
+    assert not empty.db[EVENTS].find_one({"cluster_id": cluster_id})

@@ -482,7 +482,7 @@ class Consolidation:
         """The scenes with what identity needs of them (no pixels), in the given order: those
         this process stored handed over, the others read back."""
         scenes = {key: scene for key in scene_ids
-                  if (scene := self.store.handed_over.get(key)) is not None}
+                  if (scene := self.store.handed_over.take(key)) is not None}
         if unread := [key for key in scene_ids if key not in scenes]:
             scene_docs = list(self.store.scenes.find({"_id": {"$in": unread}}, SCENE_EVIDENCE,
                                                      session=session))

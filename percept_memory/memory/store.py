@@ -89,7 +89,9 @@ class HandedOver:
     """Scenes this process stored and made itself (from a request's JSON), as identity reads
     them back (consolidation.as_evidence), for this process's consolidator: a scene waited
     for is consolidated without reading it, its clusters and their blobs back and decoding
-    every annotation again. A scene not here (stored elsewhere, dropped) is read back."""
+    every annotation again. A scene not here (stored elsewhere, dropped, or taken once) is
+    read back: one consolidated again (a rebuild) has what people appended since (a
+    rejection, a split), which the copy handed over has not."""
 
     def __init__(self, size: int = HANDED_OVER):
         self.size = size
@@ -103,9 +105,10 @@ class HandedOver:
             while len(self._scenes) > self.size:
                 self._scenes.popitem(last=False)
 
-    def get(self, scene_id: ObjectId) -> Scene | None:
+    def take(self, scene_id: ObjectId) -> Scene | None:
+        """The scene as it was stored, once."""
         with self._lock:
-            return self._scenes.get(scene_id)
+            return self._scenes.pop(scene_id, None)
 
 
 class _Abort(Exception):

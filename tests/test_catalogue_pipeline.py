@@ -3,14 +3,18 @@ aborted batch is forgotten, so the catalogue still equals the one rebuilt from t
 
 from __future__ import annotations
 
+from collections import Counter
+
 from percept_memory.demo import kitchen_week
 from percept_memory.ingest.service import IngestService, memory_pipeline
-from percept_memory.memory.catalogue.stage import CatalogueStage
+from percept_memory.memory.catalogue.stage import MODELS_PER_OBJECT, CatalogueStage
 from percept_memory.memory.consolidation import Consolidation
 from percept_memory.memory.pipeline import Pipeline, request_rebuild
+from percept_memory.memory.schema import CATALOGUE
 
+from .conftest import ingest_consolidated
 from .test_catalogue_store import stored_catalogue
-from .test_pipeline import Failing
+from .test_pipeline import BELIEF, Failing
 
 
 class FailingOnce(Failing):
@@ -39,4 +43,29 @@ def test_aborted_batches_leave_no_trace_in_the_catalogue(store):
     assert live[0]
     request_rebuild(store)
     memory_pipeline(store).drain(timeout=120)
+    assert stored_catalogue(store) == live
+
+
+def test_an_object_seen_for_weeks_keeps_one_entry_s_worth_of_models(store):
+    """Each track made a model every OBSERVATIONS_PER_MODEL sightings and kept them all:
+    after a month of the kitchen 215 models in 86 entries for 20 items (4.3 an item; 18.8
+    after four months), as an entry holds MODELS_PER_ENTRY. The redundant ones are forgotten,
+    the same live and rebuilt."""
+    for name in (*BELIEF, "scenes", "clusters", "jobs"):
+        store.db[name].delete_many({})
+    week = kitchen_week.generate(days=24, seed=0)
+    ingest_consolidated(store, week.scenes)
+    truth = {cluster.id: week.truth.object_at(i, j)
+             for i, scene in enumerate(week.scenes) for j, cluster in enumerate(scene.clusters)}
+    models = list(store.db[CATALOGUE].find({}, {"object_id": 1, "entry": 1}))
+    per_object = Counter(m["object_id"] for m in models)
+    assert max(per_object.values()) == MODELS_PER_OBJECT  # (some were forgotten)
+    entries: dict = {}
+    for m in models:
+        entries.setdefault(m["entry"], set()).add(truth[m["_id"]].partition("#")[0])
+    assert all(len(kinds) == 1 for kinds in entries.values())
+    assert len(entries) <= 1.5 * len(set(truth.values()))  # (28 for 20: twins apart)
+    live = stored_catalogue(store)
+    request_rebuild(store)
+    memory_pipeline(store).drain(timeout=600)
     assert stored_catalogue(store) == live

@@ -54,6 +54,9 @@ HIGH_INCLUSION = 0.75
 # full entry of 5 keeps casting one off as an entry of its own. Kitchen weeks of seeds 1-3
 # (seed 0 is bench/catalogue.py's): 22, 24, 27 entries for 20 objects at 5; 19, 19, 20 at 8.
 MODELS_PER_ENTRY = 8
+# The models an object keeps (each of up to OBSERVATIONS_PER_MODEL sightings): one entry's
+# worth, so that all of an object's looks can be one entry (_forget_redundant).
+MODELS_PER_OBJECT = MODELS_PER_ENTRY
 UNREAD = object()  # a version not read yet
 
 
@@ -203,6 +206,7 @@ class Batch:
         """Add an observation to the track's model; learn the model again if it grew
         (True)."""
         if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
+            self._forget_redundant(track["_id"])
             track.update(model=cluster_id, elements=[], last=[], observations=0)
         before = set(track["elements"])
         grown = GraphOfViews.of_sequence([views], after=track["last"])
@@ -214,6 +218,27 @@ class Batch:
         self.learner.learn(track["model"].binary, GraphOfViews.of(track["elements"]),
                            track["observations"])
         return True
+
+    def _forget_redundant(self, object_id: ObjectId) -> None:
+        """Before the object's track begins a model: while it has MODELS_PER_OBJECT, forget
+        the one its others explain best (inclusion in their union, eq. 5.2; the oldest of
+        equals), so an object seen for months keeps a bounded set of its looks, as varied as
+        they were, instead of a new model every OBSERVATIONS_PER_MODEL sightings that no
+        entry of MODELS_PER_ENTRY can hold (120 days of a kitchen: 363 entries for 20
+        objects). The thesis forgets singletons beyond a limit (algorithm 7) for the same
+        reason: a memory the size of the home, not of its history."""
+        learner = self.learner
+        mine = sorted(m for m, o in self.objects.items() if o == object_id and m in learner.models)
+        while len(mine) >= MODELS_PER_OBJECT:
+            def explained(m: bytes) -> float:
+                others = frozenset().union(*(learner.models[o].graph.elements
+                                             for o in mine if o != m))
+                return inclusion_degree(learner.models[m].graph, GraphOfViews(others))
+            gone = max(mine, key=lambda m: (explained(m), -mine.index(m)))
+            learner.forget(gone)
+            self.objects.pop(gone)
+            self.learnt.pop(gone, None)
+            mine.remove(gone)
 
     def entry_mates(self, object_id: ObjectId) -> list[ObjectId]:
         """The other objects whose tracks made models of the entry the object's current model

@@ -25,6 +25,7 @@ from typing import Any
 import click
 from pydantic import ValidationError
 
+from percept_memory.answers import printable
 from percept_memory.ingest.errors import BackendSetupError, IngestError, SourceError
 from percept_memory.memory.errors import StoreError, problems_line, redacted
 from percept_memory.memory.mongod import EmbeddedMongod, EmbeddedMongoError
@@ -71,8 +72,8 @@ class _Group(click.Group):
 def one_line(error: Exception) -> str:
     """An error as one line: pydantic's as `field: problem; ...` (no input echoed, no URL)."""
     if isinstance(error, ValidationError):
-        return problems_line(error)
-    return " ".join(str(error).split())
+        return printable(problems_line(error))
+    return printable(" ".join(str(error).split()))
 
 
 class _StderrHandler(logging.Handler):
@@ -551,7 +552,7 @@ def jobs(settings: Settings, state: str | None, limit: int, retry_failed: bool,
     for job in report["jobs"]:
         detail = job.get("error") if job["state"] != "done" else _outcome(job.get("outcome", {}))
         click.echo(f"{job['id']}  {job['state']:<7} attempts {job['attempts']}  "
-                   f"{job['updated'][:19]}  {detail or ''}")
+                   f"{job['updated'][:19]}  {printable(detail or '')}")
 
 
 def _outcome(outcome: dict) -> str:
@@ -606,13 +607,13 @@ def pipeline_report(settings: Settings, retry: bool, as_json: bool) -> None:
     width = max((len(row["map"]) for row in report["maps"]), default=0)
     for row in report["maps"]:
         until = row["consolidated_until"] or "-"
-        click.echo(f"{row['map']:<{width}}  consolidated until {until:<30} "
+        click.echo(f"{printable(row['map']):<{width}}  consolidated until {until:<30} "
                    f"pending {row['pending']:>6}  held {row['held']:>4}"
                    f"{'  rebuilding' if row['rebuilding'] else ''}"
                    f"{'  by ' + row['consolidator'] if row['consolidator'] else ''}")
     for held in report["held"]:
-        click.echo(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
-                   f"{held['attempts']} attempts: {held['error']}")
+        click.echo(printable(f"held: scene {held['scene_id']} ({held['map']}, {held['time']}), "
+                             f"{held['attempts']} attempts: {held['error']}"))
 
 
 @main.command(epilog=example("PMEM_CONSOLIDATOR=false pmem serve &  pmem consolidate"))
@@ -1068,6 +1069,6 @@ def corrections(settings: Settings, author: str | None, limit: int, as_json: boo
                 or (row["split_off"] and f"{len(row['split_off'])} split off from "
                                           f"{len(row['apart_from'])}") or "")
         undone = f"  (undone by {row['undone_by']['author']})" if row["undone_by"] else ""
-        click.echo(f"{row['id']}  {row['kind']:<7} {row['author']:<12} "
-                   f"{answers.iso(row['time'], precise=False)}  cluster "
-                   f"{row['cluster_id']}  {what}{undone}")
+        click.echo(printable(f"{row['id']}  {row['kind']:<7} {row['author']:<12} "
+                             f"{answers.iso(row['time'], precise=False)}  cluster "
+                             f"{row['cluster_id']}  {what}{undone}"))

@@ -84,3 +84,19 @@ def test_bad_corrections_are_one_line_and_exit_1(env, store, args, words):
     assert result.exit_code == 1, result.output
     (line,) = result.output.strip().splitlines()
     assert line.startswith("Error: ") and words in line, line
+
+
+def test_what_a_terminal_would_act_on_is_printed_as_escapes(env, store):
+    """A rejection's reason is free text: an escape sequence in it cleared the screen of
+    whoever listed the corrections, or wrote their clipboard (OSC 52)."""
+    cluster = store.clusters.find_one({"object_id": {"$ne": None}}, sort=[("_id", -1)])
+    made = pmem(env, "correct", "reject", str(cluster["_id"]), "--author", "ana", "--reason",
+                "glare\x1b[2J\x1b]52;c;ZWNobyBwd25lZAo=\x07\nfake row")
+    assert made.exit_code == 0, made.output
+    listed = pmem(env, "corrections", "--author", "ana").output
+    assert "\x1b" not in listed and "\x07" not in listed
+    assert "glare\\x1b[2J\\x1b]52;c;ZWNobyBwd25lZAo=\\x07\\nfake row" in listed
+    refused = pmem(env, "correct", "relabel", str(cluster["_id"]), "mug\x1b[2J", "--author",
+                   "ana")
+    assert refused.exit_code == 1 and "control characters" in refused.output
+    assert "\x1b" not in refused.output

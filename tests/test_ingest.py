@@ -66,6 +66,16 @@ MALFORMED = [
      "not a kind of Annotation"),
     ("misspelt _type", f"{CLASSIFICATION}._type", "pm.annotation.Clasification",
      CLASSIFICATION, "did you mean 'pm.annotation.Classification'"),
+    ("a region of a MiB (its name filled every page and, 17 of them, the scene log's "
+     "lists past MongoDB's 16 MB)", f"{LOCATION}.region", "r" * 2**20, f"{LOCATION}.region",
+     "at most 200 characters"),
+    ("a newline in a class name (a fake row in the CLI's tables)",
+     f"{CLASSIFICATION}.class_name", "mug\n6b0c  undo  admin", f"{CLASSIFICATION}.class_name",
+     "a name holds no control characters: '\\n' at 3"),
+    ("an escape sequence in an annotator's name", f"{CLASSIFICATION}.source",
+     "svm\x1b]52;c;ZWNobyBwd25lZAo=\x07", f"{CLASSIFICATION}.source", "control characters"),
+    ("a right-to-left override in the robot's name", "robot", "pr2\u202egpj.exe", "robot",
+     "control characters"),
     ("a type's short name (its label was lost as an unknown type's)",
      f"{CLASSIFICATION}._type", "Classification", CLASSIFICATION,
      "named in full, with their namespace, such as 'lab.annotation.Weight'; did you mean "

@@ -19,6 +19,7 @@ from fastapi import Request
 from fastapi.responses import HTMLResponse
 from fastapi.templating import Jinja2Templates
 from pydantic import TypeAdapter, ValidationError
+from pymongo.errors import OperationFailure
 
 from percept_memory.memory.types import Correction
 from percept_memory.memory.types.curation import in_force, verdict
@@ -64,6 +65,21 @@ class PageError(Exception):
     def __init__(self, status: int, message: str, problems: list[str] | None = None):
         super().__init__(message)
         self.status, self.message, self.problems = status, message, problems or []
+
+
+MAX_OFFERED = 1000  # values a form offers to choose from
+
+
+def offered(collection, key: str) -> list[str]:
+    """The values stored under `key` (an index's distinct keys), as a form offers them: at
+    most MAX_OFFERED. Names are short (types.Name), but one answer of distinct holds at most
+    16 MB: past that the form offers none rather than fail (a page that answered 500 for good
+    after 17 scenes of 1 MiB regions, before names were capped)."""
+    try:
+        values = collection.distinct(key)
+    except OperationFailure:
+        return []
+    return sorted(v for v in values if v)[:MAX_OFFERED]
 
 
 def page(request: Request, template: str, context: dict, status: int = 200,

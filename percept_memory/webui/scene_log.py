@@ -31,6 +31,7 @@ from .html import (
     PageError,
     nanoseconds,
     nanoseconds_through,
+    offered,
     page,
     time_input_type,
 )
@@ -54,8 +55,7 @@ def routes(store: MemoryStore) -> APIRouter:
                    "since": since, "until": until}
 
         def choose() -> tuple[dict[str, list[str]], dict]:
-            choices = {name: sorted(v for v in store.scenes.distinct(key) if v is not None)
-                       for name, key in CHOICES.items()}
+            choices = {name: offered(store.scenes, key) for name, key in CHOICES.items()}
             return choices, scene_filter(filters, choices["type"])
 
         after = _cursor(before) if before else None  # (a bad cursor: a 422 before any work)

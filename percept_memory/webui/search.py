@@ -29,7 +29,7 @@ from percept_memory.queries.ops import QueryError, QueryTimeout
 from percept_memory.queries.params import from_params
 
 from .facets import cluster_facet_counts, shown
-from .html import PageError, page, problems, time_input_type
+from .html import PageError, offered, page, problems, time_input_type
 
 PAGE_SIZE = 48
 VIEWS = ("grid", "list")
@@ -156,8 +156,8 @@ def _choices(store: MemoryStore) -> dict:
         f"{cls.__name__.casefold()}:{field}="
         for cls in registered_types().values() if issubclass(cls, Annotation)
         for field in cls.model_fields if field not in HINT_SKIPPED)
-    return {"regions": sorted(r for r in store.clusters.distinct("search.region") if r),
-            "robots": sorted(r for r in store.clusters.distinct("search.robot") if r),
+    return {"regions": offered(store.clusters, "search.region"),
+            "robots": offered(store.clusters, "search.robot"),
             "predicates": predicates, "max_k": MAX_K}
 
 

@@ -25,7 +25,7 @@ from pydantic import AliasChoices, Field
 
 from . import compare
 from .appearance import sqrt_distribution, unit
-from .base import Id, Identifiable, Model, Timestamp, stored_type
+from .base import Id, Identifiable, Model, Name, Timestamp, stored_type
 from .raw import Box, Finite, NDArray, Pose, Vec3
 
 Probability = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
@@ -38,7 +38,7 @@ class Annotation(Identifiable):
     `naming_weight` says how much the type's labels name the object (thesis 5.4.5: names from
     word statistics): a product or a logo names it, a shape or a colour only describes it."""
 
-    source: str = ""
+    source: Name = ""
     naming_weight: ClassVar[float] = 0.0
     label_fields: ClassVar[tuple[str, ...]] = ()
     """The fields whose values are the type's labels, when it gives them unconditionally: an
@@ -79,11 +79,11 @@ class Location(Annotation):
     perception knows it (localisation and segmentation); identity then knows how far apart
     two observations of one object may lie, instead of only learning it from its decisions."""
 
-    region: str | None = None
+    region: Name | None = None
     position: Vec3 | None = None
     position_sigma: tuple[Distance, Distance, Distance] | None = None
-    frame: str = "map"
-    relation: str | None = None
+    frame: Name = "map"
+    relation: Name | None = None
     pose: Pose | None = None  # pose relative to the region's frame, when known
 
 
@@ -94,10 +94,10 @@ class Classification(Annotation):
     naming_weight: ClassVar[float] = 1.0
     label_fields: ClassVar[tuple[str, ...]] = ("class_name",)
 
-    class_name: str = Field(validation_alias=AliasChoices("class_name", "classname"))
+    class_name: Name = Field(validation_alias=AliasChoices("class_name", "classname"))
     confidence: Probability | None = None
-    classifier: str = ""
-    feature: str = Field(default="", validation_alias=AliasChoices("feature", "featurename"))
+    classifier: Name = ""
+    feature: Name = Field(default="", validation_alias=AliasChoices("feature", "featurename"))
     confidences: dict[str, Finite] = {}
 
     def views(self) -> list[str]:
@@ -124,7 +124,7 @@ class Detection(Annotation):
     naming_weight: ClassVar[float] = 1.0
     label_fields: ClassVar[tuple[str, ...]] = ("name",)
 
-    name: str
+    name: Name
     confidence: Probability | None = None
     box: Box | None = None
 
@@ -142,7 +142,7 @@ class Shape(Annotation):
 
     label_fields: ClassVar[tuple[str, ...]] = ("shape",)
 
-    shape: str
+    shape: Name
     confidence: Probability | None = None
 
     def views(self) -> list[str]:
@@ -157,7 +157,7 @@ class Shape(Annotation):
 class SemanticColor(Annotation):
     """Named colours with the share of the object's pixels each covers."""
 
-    ratios: dict[str, Annotated[float, Field(ge=0.0, le=1.0)]]
+    ratios: dict[Name, Annotated[float, Field(ge=0.0, le=1.0)]]
 
     def labels(self) -> list[str]:
         return [name for name, share in self.ratios.items() if share >= 0.2]
@@ -175,7 +175,7 @@ class ColorHistogram(Annotation):
     """A colour histogram of the object's pixels (e.g. 16 x 16 hue-saturation bins)."""
 
     histogram: NDArray
-    space: str = "HS"
+    space: Name = "HS"
 
     def views(self) -> list[str]:
         """Its three fullest bins: a coarse word that the same side of an object repeats."""
@@ -205,7 +205,7 @@ class ColorHistogram(Annotation):
 class FeatureVector(Annotation):
     """A named descriptor: VFH (308 floats), CNN features, ..."""
 
-    name: str
+    name: Name
     vector: NDArray
 
     def views(self) -> list[str]:
@@ -255,7 +255,7 @@ class Logo(Annotation):
     naming_weight: ClassVar[float] = 1.5
     label_fields: ClassVar[tuple[str, ...]] = ("brand",)
 
-    brand: str
+    brand: Name
     confidence: Probability | None = None
     box: Box | None = None
 
@@ -278,8 +278,8 @@ class Product(Annotation):
     naming_weight: ClassVar[float] = 2.0
     label_fields: ClassVar[tuple[str, ...]] = ("name", "brand")
 
-    name: str | None = None
-    brand: str | None = None
+    name: Name | None = None
+    brand: Name | None = None
     properties: dict[str, ProductValue] = {}
 
     def views(self) -> list[str]:
@@ -300,7 +300,7 @@ class Barcode(Annotation):
     label_fields: ClassVar[tuple[str, ...]] = ("code",)
 
     code: str
-    symbology: str = ""
+    symbology: Name = ""
 
     def views(self) -> list[str]:
         return [self.code]
@@ -316,7 +316,7 @@ class LookupProvenance(Model):
     perceptual-hash cache (with the Hamming distance of the two crops' hashes), how long getting
     it took, and the enrichment job that appended it."""
 
-    backend: str
+    backend: Name
     cached: bool = False
     hash_distance: Annotated[int, Field(ge=0, le=64)] = 0
     latency_ms: Annotated[float, Field(ge=0)] = 0.0
@@ -338,7 +338,7 @@ class WebLookup(Annotation):
 
     naming_weight: ClassVar[float] = 1.0
 
-    service: str = ""
+    service: Name = ""
     category: str
     title: str
     box: Box | None = None
@@ -367,7 +367,7 @@ class GroundTruth(Annotation):
     naming_weight: ClassVar[float] = 5.0
     label_fields: ClassVar[tuple[str, ...]] = ("class_name",)
 
-    class_name: str
+    class_name: Name
     pose: Pose | None = None
 
 
@@ -379,7 +379,7 @@ class Geometry(Annotation):
     volume: Annotated[float, Field(ge=0)] | None = None
     pose: Pose | None = None
     distance_to_plane: Finite | None = None
-    semantic_size: str | None = None
+    semantic_size: Name | None = None
 
     def labels(self) -> list[str]:
         return [self.semantic_size] if self.semantic_size else []
@@ -390,9 +390,9 @@ class Relation(Annotation):
     """A row of the scene's relations table (thesis table 3.1): `predicate(a, b)` holds with
     `probability`; `b` is None for unary predicates."""
 
-    predicate: str
-    a: str
-    b: str | None = None
+    predicate: Name
+    a: Name
+    b: Name | None = None
     probability: Probability = 1.0
 
 

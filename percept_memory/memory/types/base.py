@@ -10,6 +10,7 @@ from typing import Annotated, Any
 import numpy as np
 from bson import ObjectId
 from pydantic import (
+    AfterValidator,
     BeforeValidator,
     ConfigDict,
     Discriminator,
@@ -20,6 +21,7 @@ from pydantic import (
     SerializationInfo,
     SerializeAsAny,
     SerializerFunctionWrapHandler,
+    StringConstraints,
     Tag,
     ValidationInfo,
     WithJsonSchema,
@@ -71,6 +73,22 @@ def _an_integer(value: Any) -> Any:
                          "point or an exponent (those lose the last digits)")
     return value
 
+
+# what a terminal or a page acts on instead of showing: C0 and C1 controls (a newline, the
+# escape sequences that clear a screen or write the clipboard) and the bidirectional overrides
+CONTROLS = re.compile("[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+MAX_NAME = 200  # characters of a name: a robot, map, region, annotator, class, image
+
+
+def no_controls(text: str) -> str:
+    if found := CONTROLS.search(text):
+        raise ValueError(f"a name holds no control characters: {found[0]!r} at {found.start()}")
+    return text
+
+
+Name = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidator(no_controls)]
+"""A name people read in lists, pages and the CLI: one line of at most MAX_NAME characters
+(texts, such as OCR's or a log message, are not names)."""
 
 MAX_TIMESTAMP = (2**63 - 1) // 10**9 * 10**9
 """2262-04-11T23:47:16Z, the last whole second int64 nanoseconds hold (pages round a time up

@@ -20,14 +20,16 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Annotated, ClassVar
 
-from pydantic import Field, StringConstraints
+from pydantic import AfterValidator, Field, StringConstraints
 
 from .annotations import Annotation
-from .base import Id, Timestamp, stored_type
+from .base import MAX_NAME, Id, Timestamp, no_controls, stored_type
 
 HUMAN = "human"  # the `source` of every correction: the annotator is a person
-Author = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100)]
-Label = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=200)]
+Author = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1, max_length=100),
+                   AfterValidator(no_controls)]
+Label = Annotated[str, StringConstraints(strip_whitespace=True, min_length=1,
+                                         max_length=MAX_NAME), AfterValidator(no_controls)]
 
 
 class Correction(Annotation):

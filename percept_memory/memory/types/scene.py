@@ -9,13 +9,12 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from .annotations import Annotation, Location, LogLine, Relation
-from .base import Id, Identifiable, Timestamp, polymorphic, stored_type
+from .base import Id, Identifiable, Name, Timestamp, polymorphic, stored_type
 from .hypotheses import Hypothesis, SpatialVolume
 from .raw import CameraInfo, Image, PointCloud, Transform, Vec3
 
 A = TypeVar("A", bound=Annotation)
 MAX_CLUSTERS = 1000  # per scene: a scene is stored in one transaction
-MAX_NAME = 200  # characters of a robot, frame or map name
 
 
 @stored_type("pm.scene.Cluster")
@@ -91,19 +90,19 @@ class Scene(Identifiable):
     clusters, the relations table, scene-level annotations and the annotators' log."""
 
     timestamp: Timestamp
-    robot: str = Field("", max_length=MAX_NAME)
-    frame: str = Field("map", max_length=MAX_NAME)
+    robot: Name = ""
+    frame: Name = "map"
     # The unit of space: regions, objects and the belief are per map, and observations in two
     # maps are never one object. Default: the robot and its frame ("pr2/map"), given when the
     # scene is validated.
-    map: str = Field("", max_length=MAX_NAME, description=(
+    map: Name = Field("", description=(
         "the map (site) the scene belongs to; default: robot/frame"))
     camera_pose: Transform | None = None  # the camera in `frame`
     camera: CameraInfo | None = None
     # What the sensor saw, when the scene says so (in `frame`); else the camera's frustum
     view_region: SpatialVolume | None = None
     transforms: list[Transform] = []
-    images: dict[str, Image] = {}
+    images: dict[Name, Image] = {}
     clouds: dict[str, PointCloud] = {}
     clusters: list[Cluster] = Field([], max_length=MAX_CLUSTERS)
     relations: list[Relation] = []

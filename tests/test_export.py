@@ -34,7 +34,7 @@ from percept_memory.ingest import synthetic
 from percept_memory.ingest.robosherlock import read_dump
 from percept_memory.ingest.service import IngestService
 from percept_memory.memory.settings import Settings
-from percept_memory.memory.types import Image
+from percept_memory.memory.types import Classification, Image
 from percept_memory.queries.export.model import ExportQuery
 from percept_memory.queries.export.run import Export
 from percept_memory.webui.app import create_app
@@ -436,3 +436,40 @@ def test_pmem_export_of_nothing_fails_and_says_why(memory, mongo_uri, db_name, t
                                     "--out", str(tmp_path / "none.zip")], env=env)
     assert run.exit_code == 1 and not (tmp_path / "none.zip").exists()
     assert "Error: nothing exported: the query selects no clusters" in run.output
+
+
+def test_names_become_paths_every_file_system_and_unzip_take(store, kitchen_rgb):
+    """Image names and labels are names (one line, at most 200 characters) but not file
+    names: an image named rgb.png was left out ('no image the box is in'), one with .. in it
+    failed every export (500), and labels made folders unzip could not create."""
+    rng = np.random.default_rng(11)
+    labels = ["Cup", "cup", "CON", "é" * 200, "😀 mug"]
+    images = ["rgb.png", "../../x/CON", "depth/../color"]
+    scenes = []
+    for i, image in enumerate(images):
+        scene = synthetic.scene(rng, 1_700_000_000_000_000_000 + i, len(labels), kitchen_rgb,
+                                robot="odd")
+        scene.images = {image: Image(data=kitchen_rgb, encoding="bgr8")}
+        for cluster, label in zip(scene.clusters, labels, strict=True):
+            cluster.hypotheses[0].image = image
+            for said in cluster.annotations_of(Classification):
+                said.class_name = label
+        scenes.append(scene)
+    list(IngestService(store).ingest_stream((str(i), s) for i, s in enumerate(scenes)))
+    for kind in ("coco", "yolo", "imagefolder"):
+        _, archive = exported(store, format=kind, robot=["odd"],
+                              **({} if kind == "imagefolder" else {"images": "scenes"}))
+        names = archive.namelist()
+        assert all(part not in ("", ".", "..") and len(part.encode()) < 255
+                   for n in names for part in n.split("/")), names
+        summary = json.loads(archive.read("manifest.json"))
+        assert summary["exported"] == len(labels) * len(images), (kind, summary)
+        if kind == "coco":
+            pictures = [n for n in names if n.startswith("images/")]
+            assert len(pictures) == len(images) and all(n.count("/") == 1 for n in pictures)
+        if kind == "yolo":
+            assert "😀 mug" in yaml.safe_load(archive.read("data.yaml"))["names"].values()
+        if kind == "imagefolder":
+            folders = json.loads(archive.read("classes.json"))
+            assert len({f.casefold() for f in folders.values()}) == len(labels)
+            assert folders["CON"] == "_CON" and len(folders["é" * 200]) <= 60

@@ -8,6 +8,7 @@ import io
 import time
 import zipfile
 
+import cv2
 import pytest
 from fastapi.testclient import TestClient
 from pymongo import MongoClient
@@ -20,7 +21,7 @@ from percept_memory.webui.app import create_app
 
 from .conftest import LOCAL, ingest_consolidated
 from .test_ingest import STAMP, valid_scene
-from .test_malformed import CROP, counts, png, spoilt
+from .test_malformed import CROP, b64, counts, png, spoilt
 from .test_mongod import free_port
 
 FAR = 1e308
@@ -161,3 +162,25 @@ def test_the_scene_log_and_search_stay_up_when_the_names_stored_pass_16_mb(clien
     finally:
         store.scenes.delete_many({"_id": {"$in": inserted}})
         store.clusters.delete_many({"scene_id": None})
+
+
+def test_an_image_s_name_is_one_segment_of_its_url_whatever_it_holds(client, kitchen_rgb):
+    """An image named ../../../../api/export?format=coco made every viewer's browser ask for
+    an export; one named depth/../color showed another image."""
+    import re
+    from html import unescape
+
+    names = ["../../../../api/export?format=coco", "depth/../color", "a?b#c d", "rgb.png"]
+    scene = valid_scene(seed=12, timestamp=STAMP + 12)
+    small = cv2.imencode(".png", kitchen_rgb[::8, ::8])[1].tobytes()
+    scene["images"] = {name: {"encoding": "bgr8", "png": b64(small)} for name in names}
+    (stored,) = client.post("/api/scenes", json=scene).json()["scenes"]
+    page = client.get(f"/scenes/{stored['scene_id']}").text
+    sources = [unescape(s) for s in re.findall(r'<img src="(/img/scenes/[^"]+/images/[^"]+)"',
+                                               page)]
+    assert len(sources) == len(names)
+    for source in sources:
+        assert "/../" not in source and "?" not in source and "#" not in source
+        answer = client.get(source)
+        assert answer.status_code == 200 and answer.headers["content-type"] == "image/png", (
+            source, answer.text[:200])

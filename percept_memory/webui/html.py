@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from urllib.parse import quote
 
 from bson import ObjectId
 from fastapi import Request
@@ -54,6 +55,9 @@ LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 
 
 templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
 templates.env.filters["time"] = render.time_of
+# a name as one segment of a URL's path: a /, .. or ? in it stays in it (an image named
+# ../../api/export?... was a request of every viewer's browser to another path)
+templates.env.filters["segment"] = lambda text: quote(str(text), safe="")
 templates.env.globals.update(type_name=render.type_name, shown_fields=render.shown_fields,
                              open_fields=render.OPEN_FIELDS, in_force=in_force, verdict=verdict)
 templates.env.tests["correction"] = lambda a: isinstance(a, Correction)

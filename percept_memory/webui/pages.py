@@ -128,7 +128,7 @@ def page_routes(store: MemoryStore) -> APIRouter:
             "versus_truth": curation.versus_truth(cluster),
         }, policy=SCRIPT_CSP)  # its correction forms' script (curation.py)
 
-    @router.get("/img/scenes/{scene_id}/images/{name}")
+    @router.get("/img/scenes/{scene_id}/images/{name:path}")  # (a name may hold a /)
     async def scene_image(scene_id: str, name: str) -> Response:
         scene = await stored(store.get_scene, scene_id, "scene")
         if name not in scene.images:

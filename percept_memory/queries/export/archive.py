@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import re
 import tempfile
 import zipfile
 from collections.abc import Iterable, Iterator
@@ -28,6 +29,20 @@ CHUNK = 2**20
 class Archive(Protocol):
     def add(self, name: str, chunks: Iterable[bytes], size: int) -> None:
         """One entry of `size` bytes, given in chunks."""
+
+
+UNSAFE = re.compile(r"[^\w.-]+")  # anything but letters, digits, _ . and -
+DEVICES = re.compile(r"(?i)(con|prn|aux|nul|com\d|lpt\d)(\..*)?")  # Windows refuses these
+NAME_CHARACTERS = 60  # at most 240 bytes in UTF-8: a file system's names take 255
+
+
+def file_name(text: str) -> str:
+    """A name as a part of an entry's path that every file system and unzip takes: unsafe
+    characters (a /, a :, spaces) as _, no dot at either end, at most NAME_CHARACTERS, never
+    a Windows device name (CON, NUL.txt). Different texts may give one name: callers that
+    need them apart say so (ImageFolder's folders)."""
+    safe = UNSAFE.sub("_", text).strip("._")[:NAME_CHARACTERS].strip("._") or "_"
+    return f"_{safe}" if DEVICES.fullmatch(safe) else safe
 
 
 def add_bytes(archive: Archive, name: str, data: bytes) -> None:

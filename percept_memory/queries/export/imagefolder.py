@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import re
-
 from . import pixels
-from .archive import add_bytes, add_json
+from .archive import add_bytes, add_json, file_name
 from .writer import Item, Writer
-
-_UNSAFE = re.compile(r"[^\w.-]+")
 
 
 class ImageFolder(Writer):
@@ -30,12 +26,13 @@ class ImageFolder(Writer):
             self.exported(item, {"file": name})
 
     def _folder(self, label: str) -> str:
-        """A file-system-safe folder name, distinct for distinct labels."""
+        """A file-system-safe folder name, distinct for distinct labels, case aside (Cup
+        and cup are one folder on Windows and macOS)."""
         if label not in self.folders:
-            safe = _UNSAFE.sub("_", label).strip("._") or "label"
-            taken = set(self.folders.values())
+            safe = file_name(label)
+            taken = {folder.casefold() for folder in self.folders.values()}
             folder, n = safe, 1
-            while folder in taken:
+            while folder.casefold() in taken:
                 n += 1
                 folder = f"{safe}_{n}"
             self.folders[label] = folder

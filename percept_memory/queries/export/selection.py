@@ -15,7 +15,7 @@ from itertools import groupby
 
 from bson import ObjectId
 
-from percept_memory.converters import DecodeContext, decode
+from percept_memory.converters import DecodeContext, decode, escape_key
 from percept_memory.memory import documents as docs
 from percept_memory.memory.schema import CLUSTERS, OBJECTS, SCENES
 from percept_memory.memory.store import MemoryStore
@@ -102,7 +102,7 @@ class Selection:
             rois = [h for h in cluster.hypotheses if isinstance(h, ImageROI)]
             if self.pixels in ("auto", "scenes") or (self.pixels == "crops" and
                                                      all(roi.crop is None for roi in rois)):
-                projection |= {f"images.{roi.image}": 1 for roi in rois}
+                projection |= {f"images.{escape_key(roi.image)}": 1 for roi in rois}
         found = list(self.store.db[SCENES].find(
             {"_id": {"$in": list({c.scene_id for c in clusters})}}, projection))
         blobs = self.store.get_blobs(docs.blob_ids(found))

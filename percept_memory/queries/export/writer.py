@@ -3,6 +3,7 @@ pictures (scene images or crops) with the clusters' boxes, and the count of what
 
 from __future__ import annotations
 
+import hashlib
 from abc import ABC, abstractmethod
 from collections import Counter
 from collections.abc import Iterator
@@ -11,7 +12,7 @@ from dataclasses import dataclass, field
 from percept_memory.memory.types import Cluster, Scene, datetime_from_timestamp
 
 from . import pixels
-from .archive import Archive, Spool
+from .archive import Archive, Spool, file_name
 from .labels import Label
 from .model import ExportQuery
 
@@ -125,7 +126,16 @@ class Writer(ABC):
             if data is None:
                 self.skip("the scene image is not an 8 or 16-bit image", len(instances))
             else:
-                yield Picture(f"{scene.id}_{name}", data, instances)
+                yield Picture(picture_stem(scene.id, name), data, instances)
+
+
+def picture_stem(scene_id, image: str) -> str:
+    """A scene image's file name: the scene's id and the image's name as a file name, with a
+    digest of the name when it had to change (two names must not give one file)."""
+    safe = file_name(image)
+    if safe != image:
+        safe += "_" + hashlib.sha1(image.encode()).hexdigest()[:8]
+    return f"{scene_id}_{safe}"
 
 
 def provenance(item: Item) -> dict:

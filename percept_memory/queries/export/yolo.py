@@ -25,7 +25,8 @@ class Yolo(Writer):
             add_bytes(self.archive, f"labels/{picture.stem}.txt", "".join(lines).encode())
 
     def finish(self) -> None:
-        names = "".join(f"  {i}: {json.dumps(name)}\n" for name, i in self.classes.items())
+        names = "".join(f"  {i}: {json.dumps(name, ensure_ascii=False)}\n"
+                        for name, i in self.classes.items())  # (YAML reads \ud83d alone)
         add_bytes(self.archive, "data.yaml", (
             "# percept-memory export: train and val are the same images; split them as you "
             f"need\npath: .\ntrain: images\nval: images\nnc: {len(self.classes)}\nnames:"

@@ -136,6 +136,42 @@ def test_the_confusion_against_the_ground_truth_with_precision_and_recall(client
     assert scores == {"cup": (0.75, 0.6, 5), "bowl": (0.5, 0.667, 3), "plate": (1.0, 0.5, 2)}
 
 
+def test_a_class_is_compared_as_the_name_it_makes_and_a_cluster_counted_once(store):
+    """SiggBottle, sigg bottle and Sigg_Bottle are one name (as naming and search have it), so
+    no disagreement; an annotator that gave a cluster two classes counted it twice in the
+    support of the reference's class (recall 15/21 for 15/20)."""
+    def scene(i: int, robot: str, said: list[list[tuple[str, str]]]) -> Scene:
+        return Scene(timestamp=EIGHT + i, robot=robot, clusters=[Cluster(annotations=[
+            GroundTruth(class_name=truth), *(Classification(source=who, class_name=name)
+                                             for who, name in given)])
+            for truth, given in said])
+    ids = store.put_scenes([
+        scene(1, "spelt", [("SiggBottle", [("SVM", "sigg bottle"), ("YOLO", "Sigg_Bottle")])]),
+        scene(2, "spelt", [("SiggBottle", [("SVM", "SiggBottle"), ("YOLO", "sigg bottle")])]),
+        scene(3, "twice", [("cup", [("SVM", "cup"), ("SVM", "mug")]), ("cup", [("SVM", "cup")]),
+                           ("cup", [("SVM", "cup")]), ("cup", [("SVM", "bowl")])])])
+    try:
+        compared_by_name(QueryEngine(store))
+    finally:  # (the module's other tests read every robot's)
+        store.scenes.delete_many({"_id": {"$in": [i.scene_id for i in ids]}})
+        store.clusters.delete_many({"scene_id": {"$in": [i.scene_id for i in ids]}})
+
+
+def compared_by_name(engine: QueryEngine) -> None:
+    spelt = engine.annotator_report(robot="spelt").comparisons
+    assert {(c.annotator, c.reference): c.disagreements for c in spelt} == {
+        ("SVM", GROUND_TRUTH): 0, ("YOLO", GROUND_TRUTH): 0, ("SVM", "YOLO"): 0}
+    (svm, *_) = spelt
+    assert [(c.said, c.expected, c.clusters) for c in svm.cells] == [
+        ("SiggBottle", "SiggBottle", 2)]  # (as it was most often spelt)
+    cell = engine.annotator_clusters(robot="spelt", annotator="SVM", reference=GROUND_TRUTH,
+                                     said="sigg_bottle", expected="sigg bottle")
+    assert cell.total == 2
+    (twice, *_) = engine.annotator_report(robot="twice").comparisons
+    scores = {s.class_name: (s.precision, s.recall, s.support) for s in twice.scores}
+    assert scores["cup"] == (1.0, 0.75, 4) and scores["mug"] == (0.0, None, 0)
+
+
 def test_annotators_are_compared_with_each_other_too(client):
     answer = report(client)
     assert [(c["annotator"], c["reference"]) for c in answer["comparisons"]] == [

@@ -22,6 +22,7 @@ import numpy as np
 
 from percept_memory.converters import decode, name_of
 from percept_memory.memory.schema import CLUSTERS, SCENES
+from percept_memory.memory.search_keys import normal_label
 from percept_memory.memory.types import Classification, Detection, GroundTruth
 from percept_memory.memory.types.curation import Rejection, Relabel, Undo, verdict
 
@@ -126,8 +127,9 @@ def cell(q: ConfusionCell) -> Plan[CellClusters]:
     those on which the annotator said `said` and the reference `expected` (left out: said
     nothing), newest first."""
     scenes = yield from _window(q)
+    asked = (_normal(q.said), _normal(q.expected))
     found = [(doc, verdicts) for doc, verdicts in (yield from _verdicts([s["_id"] for s in scenes]))
-             if (q.said, q.expected) in _pairs(verdicts, q.annotator, q.reference)]
+             if asked in _pairs(verdicts, q.annotator, q.reference)]
     return CellClusters(total=len(found), clusters=[
         Verdicts(id=doc["_id"], scene_id=doc["scene_id"], time=doc["time"],
                  verdicts={who: sorted(classes) for who, classes in sorted(verdicts.items())})
@@ -151,40 +153,62 @@ def comparisons(clusters: list[tuple[Cluster, int]]) -> list[Comparison]:
 
 def _compared(clusters: list[tuple[Cluster, int]], annotator: str,
               reference: str) -> Comparison:
+    """Classes are compared as the names they make (SiggBottle, sigg_bottle: "sigg bottle")
+    and shown as they were most often spelt."""
     cells: Counter = Counter()
+    spelt: dict[str, Counter] = defaultdict(Counter)
+    said_and_expected: list[tuple[set, set, int]] = []
     compared = disagreeing = 0
     for verdicts, count in clusters:
         pairs = _pairs(verdicts, annotator, reference)
-        compared += count * bool(pairs)
+        if not pairs:
+            continue
+        compared += count
         disagreeing += count * any(said != expected for said, expected in pairs)
         cells.update(dict.fromkeys(pairs, count))
+        for name in (*verdicts.get(annotator, ()), *verdicts.get(reference, ())):
+            spelt[_normal(name)][name] += count
+        said_and_expected.append((*(set(map(_normal, verdicts.get(who, ())))
+                                    for who in (annotator, reference)), count))
+
+    def shown(name: str | None) -> str | None:
+        return None if name is None else spelt[name].most_common(1)[0][0]
     return Comparison(
         annotator=annotator, reference=reference, clusters=compared, disagreements=disagreeing,
-        cells=[ConfusionCount(said=s, expected=e, clusters=n) for (s, e), n in sorted(
-            cells.items(), key=lambda i: (str(i[0][1]), str(i[0][0])))],
-        scores=_scores(cells))
+        cells=[ConfusionCount(said=shown(s), expected=shown(e), clusters=n) for (s, e), n in
+               sorted(cells.items(), key=lambda i: (str(shown(i[0][1])), str(shown(i[0][0]))))],
+        scores=[score.model_copy(update={"class_name": shown(score.class_name)})
+                for score in _scores(said_and_expected)])
+
+
+def _normal(name: str | None) -> str | None:
+    return None if name is None else normal_label(name)
 
 
 def _pairs(verdicts: Cluster, annotator: str, reference: str) -> set[tuple]:
-    """The (annotator's class, reference's class) pairs of a cluster, None for one that said
-    nothing; none if neither did, nor if people did not correct it: people correct a few
-    clusters, so one they left alone is no disagreement with them (the ground truth, where
-    there is any, labels every object: a class where it has none is a false detection)."""
+    """The (annotator's class, reference's class) pairs of a cluster, as the names they make,
+    None for one that said nothing; none if neither did, nor if people did not correct it:
+    people correct a few clusters, so one they left alone is no disagreement with them (the
+    ground truth, where there is any, labels every object: a class where it has none is a
+    false detection)."""
     said, expected = verdicts.get(annotator), verdicts.get(reference)
     if not expected and (not said or reference == PEOPLE):
         return set()
-    return set(product(sorted(said or [None]), sorted(expected or [None])))
+    return set(product(sorted({normal_label(c) for c in said or ()} or [None]),
+                       sorted({normal_label(c) for c in expected or ()} or [None])))
 
 
-def _scores(cells: Counter) -> list[ClassScore]:
-    """Precision and recall per class: a cluster the reference did not classify counts in
-    neither; one the annotator did not classify misses the reference's class."""
-    classes = sorted({c for pair in cells for c in pair if c is not None})
+def _scores(clusters: list[tuple[set, set, int]]) -> list[ClassScore]:
+    """Precision and recall per class, each cluster counted once per class (an annotator
+    that gave a cluster two classes counted it twice in the class's support): a cluster the
+    reference did not classify counts in neither; one the annotator did not classify misses
+    the reference's class. `clusters`: what the annotator and the reference said of them."""
+    classes = sorted({c for said, expected, _ in clusters for c in said | expected})
     scores = []
     for name in classes:
-        right = cells[name, name]
-        called = sum(n for (s, e), n in cells.items() if s == name and e is not None)
-        support = sum(n for (_, e), n in cells.items() if e == name)
+        right = sum(n for said, expected, n in clusters if name in said and name in expected)
+        called = sum(n for said, expected, n in clusters if name in said and expected)
+        support = sum(n for _, expected, n in clusters if name in expected)
         scores.append(ClassScore(class_name=name, precision=right / called if called else None,
                                  recall=right / support if support else None, support=support))
     return scores

@@ -89,7 +89,9 @@ def as_text(answer: Any) -> str:
     lines = []
     for name, info in type(answer).model_fields.items():
         value = getattr(answer, name)
-        if isinstance(value, list) and (not value or isinstance(value[0], BaseModel)):
+        if isinstance(value, list) and value and _has_tables(value[0]):  # (a comparison's
+            lines += [f"{name}:", _indented("\n\n".join(map(as_text, value)))]  # cells)
+        elif isinstance(value, list) and (not value or isinstance(value[0], BaseModel)):
             lines += [f"{name}:", _indented(table(value))]
         elif isinstance(value, BaseModel):  # a kind of row: as a row, else its fields
             lines += [f"{name}:", _indented(table([value]) if type(value).__name__ in COLUMNS

@@ -374,3 +374,18 @@ def test_people_s_corrections_in_force_are_a_reference_too(store, client, lab):
     assert [(c["said"], c["expected"], c["clusters"]) for c in svm["cells"]] == [
         ("cup", "mug", 1)]
     assert (svm["clusters"], svm["disagreements"]) == (1, 1)
+
+
+def test_the_cli_s_text_shows_each_comparison_s_cells_and_scores(lab, mongo_uri, db_name):
+    """They printed as ', , , ,' (a cell of the table of comparisons)."""
+    from click.testing import CliRunner
+
+    from percept_memory.cli import main
+
+    shown = CliRunner().invoke(main, ["query", "annotator-report", "--robot", "lab"],
+                               env={"MONGODB_URI": mongo_uri, "PMEM_DB": db_name})
+    assert shown.exit_code == 0, shown.output
+    text = shown.stdout
+    assert ", , ," not in text and "cells:" in text and "scores:" in text
+    rows = [line.split() for line in text.splitlines()]
+    assert ["cup", "cup", "3"] in rows and ["cup", "0.75", "0.6", "5"] in rows

@@ -184,3 +184,19 @@ def test_an_image_s_name_is_one_segment_of_its_url_whatever_it_holds(client, kit
         answer = client.get(source)
         assert answer.status_code == 200 and answer.headers["content-type"] == "image/png", (
             source, answer.text[:200])
+
+
+def test_a_page_shows_the_start_of_a_text_of_a_mib(client):
+    """A log line's or an OCR text's MiB (as much as a text may hold) was copied whole into
+    each page that shows it: the scene page grew to 17 MB."""
+    scene = valid_scene(seed=13, timestamp=STAMP + 13)
+    scene["log"] = [{"_type": "pm.annotation.LogLine", "source": "OCR", "level": "warning",
+                     "message": "w" * 2**20}]
+    scene["clusters"][0]["annotations"].append({"_type": "pm.annotation.Text", "source": "OCR",
+                                                "text": "t" * 2**20})
+    (stored,) = client.post("/api/scenes", json=scene).json()["scenes"]
+    for path in (f"/scenes/{stored['scene_id']}", f"/clusters/{stored['cluster_ids'][0]}",
+                 "/annotators"):
+        page = client.get(path)
+        assert page.status_code == 200 and len(page.content) < 2**18, (path, len(page.content))
+    assert "more characters)" in client.get(f"/scenes/{stored['scene_id']}").text

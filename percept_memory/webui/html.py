@@ -55,6 +55,7 @@ LIST_FIELDS = {"timestamp": 1, "robot": 1, "time": 1, "summary": 1, "clusters": 
 
 templates = Jinja2Templates(directory=HERE / "templates")  # autoescapes .html templates
 templates.env.filters["time"] = render.time_of
+templates.env.filters["cut"] = render.cut
 # a name as one segment of a URL's path: a /, .. or ? in it stays in it (an image named
 # ../../api/export?... was a request of every viewer's browser to another path)
 templates.env.filters["segment"] = lambda text: quote(str(text), safe="")

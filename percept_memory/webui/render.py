@@ -203,4 +203,14 @@ def _text(value: Any) -> str:
     if isinstance(value, Mapping):  # in a list of mixed items
         return "{" + ", ".join(f"{k}: {_text(v)}" for k, v in value.items()
                                if k not in HIDDEN_FIELDS) + "}"
-    return str(value)
+    return cut(str(value))
+
+
+MAX_SHOWN = 2000  # characters of a text a page shows (a text may hold a MiB)
+
+
+def cut(text: str) -> str:
+    """A text as a page shows it: its first MAX_SHOWN characters, and how many more."""
+    if len(text) <= MAX_SHOWN:
+        return text
+    return f"{text[:MAX_SHOWN]}… ({len(text) - MAX_SHOWN:,} more characters)"

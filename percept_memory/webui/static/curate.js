@@ -24,9 +24,15 @@ for (const form of document.querySelectorAll("form.correct")) {
 }
 document.querySelector("form.correct[data-then=next] input")?.focus();  // a queue starts here
 
+// A row whose correction is being saved takes no other until the answer came: a Tab and an
+// Enter before it (the focus still in the row) sent a second correction of the same cluster.
+const saving = new WeakSet();
+
 async function send(event) {
   event.preventDefault();
   const form = event.currentTarget;
+  const row = form.closest("tr, li") || form;
+  if (saving.has(row)) return;
   const status = form.querySelector("[role=status]");
   const fields = new FormData(form);
   const body = Object.fromEntries(fields);
@@ -38,7 +44,13 @@ async function send(event) {
   const secret = token.value || sessionStorage.getItem(TOKEN);
   if (secret) headers.Authorization = `Bearer ${secret}`;
   status.textContent = "Saving…";
-  const answer = await fetch(form.dataset.api, {method: "POST", headers, body: JSON.stringify(body)});
+  let answer;
+  saving.add(row);
+  try {
+    answer = await fetch(form.dataset.api, {method: "POST", headers, body: JSON.stringify(body)});
+  } finally {
+    saving.delete(row);
+  }
   if (answer.ok) {
     refused = null;
     if (secret) sessionStorage.setItem(TOKEN, secret);
@@ -65,6 +77,10 @@ async function done(form, map) {
     return;
   }
   const row = form.closest("tr, li");
+  if (!row?.classList.contains("corrected")) {  // the queue's count of clusters fixed
+    const fixed = document.querySelector(".counts .fixed");
+    if (fixed) fixed.textContent = Number(fixed.textContent) + 1;
+  }
   row?.classList.add("corrected");
   row?.nextElementSibling?.querySelector("form.correct input, form.correct button")?.focus();
 }

@@ -113,6 +113,9 @@ def test_next_failure_and_next_event(filled, week, times):
     frame = engine.playback(robot=ROBOT, t=times[0], step="failure")
     assert frame.time == first and frame.failed == ["OCRAnnotator"]
     assert engine.playback(robot=ROBOT, t=first, step="failure").time == second
+    # and back (a failure was reached forward only), from the scene shown at a moment
+    assert engine.playback(robot=ROBOT, t=second, step="previous_failure").time == first
+    assert engine.playback(robot=ROBOT, t=second + 1, step="previous_failure").time == first
     assert engine.playback(robot=ROBOT, t=first).failed == ["OCRAnnotator"]
     assert engine.playback(robot=ROBOT, t=first, step="next").failed == []
     object_id, events = followed(filled, week)
@@ -123,14 +126,18 @@ def test_next_failure_and_next_event(filled, week, times):
 
 def test_every_step_is_an_index_seek(filled):
     for step, extra in (("at", {}), ("next", {}), ("failure", {}), ("first", {}),
+                        ("previous_failure", {}),
                         ("event", {"object": filled.db.events.find_one()["object_id"]})):
         plans: list = []
-        QueryEngine(filled, explain=plans).playback(robot=ROBOT, t=0, step=step, **extra)
+        t = None if step == "previous_failure" else 0  # (now: there are failures before it)
+        QueryEngine(filled, explain=plans).playback(robot=ROBOT, t=t, step=step, **extra)
         assert plans
         for plan in plans:
             assert "COLLSCAN" not in plan["stages"] and plan["indexes"], (step, plan)
         if step == "failure":
             assert plans[0]["indexes"] == ["robot_failed_time"], plans[0]
+        if step == "previous_failure":  # (after the seek of the scene shown)
+            assert plans[1]["indexes"] == ["robot_failed_time"], plans
 
 
 # --- the API -------------------------------------------------------------------------------
@@ -271,7 +278,7 @@ def test_a_chosen_map_stays_chosen(page, url, times):
     page.locator("select[name=map]").select_option(MAP)
     expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&map={MAP}&at={times[0] // 10**9 + 1}")
     expect(page.locator("#frame")).to_have_attribute("data-time", str(times[0]))
-    expect(page.locator("nav.steps .off", has_text="previous")).to_have_count(1)
+    expect(page.locator("nav.steps .off", has_text=re.compile("^previous$"))).to_have_count(1)
     page.get_by_role("link", name="next", exact=True).click()
     expect(page).to_have_url(f"{url}/playback?robot={ROBOT}&t={times[1]}&map={MAP}")
 

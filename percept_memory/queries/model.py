@@ -583,7 +583,8 @@ class ConfusionCell(AnnotatorWindow):
         return self
 
 
-Step = Literal["at", "first", "previous", "next", "last", "event", "failure"]
+Step = Literal["at", "first", "previous", "next", "last", "event", "failure",
+               "previous_failure"]
 
 
 class Playback(Strict):
@@ -596,7 +597,8 @@ class Playback(Strict):
     step: Step = Field(default="at", description=(
         "at: the scene at or before t (the first, before it); first, previous, next, last; "
         "event: the next scene after t with an event of `object`; failure: the next scene "
-        "after t where an annotator failed (an error line in its log)"))
+        "after t where an annotator failed (an error line in its log); previous_failure: the "
+        "one before"))
     object: Id | None = Field(default=None, description="with step=event: the object")
 
     @model_validator(mode="after")

@@ -20,6 +20,7 @@ FRAME_FIELDS = {"robot": 1, "map": 1, "timestamp": 1, "summary.clusters": 1, "lo
                 "log.source": 1}
 EVENTS_LOOKED_AT = 50  # the object's next events searched for one in the robot's scenes
 FORWARD, BACKWARD = (("robot", 1), ("timestamp", 1)), (("robot", 1), ("timestamp", -1))
+BACKWARD_STEPS = ("previous", "previous_failure")
 
 
 def playback(q: Playback) -> Plan[Frame]:
@@ -30,7 +31,7 @@ def playback(q: Playback) -> Plan[Frame]:
     if q.step == "event":
         found = yield from _event_scene(q, sequence, t)
     else:
-        if q.step == "previous":  # the step is taken from the scene shown at t
+        if q.step in BACKWARD_STEPS:  # the step is taken from the scene shown at t
             shown = yield from _scene({**sequence, **_step("at", t)[0]}, BACKWARD,
                                       {"timestamp": 1})
             t = t if shown is None else shown["timestamp"]
@@ -58,6 +59,9 @@ def _step(step: str, t: int) -> tuple[dict, tuple, str]:
         return {"timestamp": {"$lt": t}}, BACKWARD, f"before {when}"
     if step == "next":
         return {"timestamp": {"$gt": t}}, FORWARD, f"after {when}"
+    if step == "previous_failure":
+        return ({"timestamp": {"$lt": t}, **FAILED}, BACKWARD,
+                f"before {when} where an annotator failed")
     return {"timestamp": {"$gt": t}, **FAILED}, FORWARD, f"after {when} where an annotator failed"
 
 

@@ -77,6 +77,7 @@ def routes(store: MemoryStore, engine: QueryEngine) -> APIRouter:
                 "kept": {k: v for k, v in (("map", map), ("object", followed)) if v},
                 "names": _names(store, [*shown, followed]),
                 "failure": _step(engine, asked, frame, "failure"),
+                "previous_failure": _step(engine, asked, frame, "previous_failure"),
                 "event": followed and _step(engine, asked, frame, "event", followed),
                 "belief": drawn_belief(store, engine, frame.map, frame.time,
                                        recorded_span(store, frame.map)[0]),

@@ -30,8 +30,21 @@ ARRAYS = DTYPES.flatmap(
     lambda dtype: hnp.arrays(np.dtype(dtype), hnp.array_shapes(min_dims=0, max_dims=3,
                                                                  min_side=0, max_side=5))
 )
+NAMED = {("u1", 1): "mono8", ("u1", 3): "rgb8", ("u1", 4): "bgra8", ("u2", 1): "mono16",
+         ("u2", 3): "bgr16"}  # ROS' names of some of them, besides OpenCV's
+
+
+def encoded_image(array: np.ndarray, fmt: str, named: bool) -> Image:
+    """The pixels with an encoding that says what they are (ROS' name or OpenCV's)."""
+    channels = array.shape[2] if array.ndim == 3 else 1
+    kind = f"{array.dtype.kind}{array.dtype.itemsize}"
+    cv = f"{array.dtype.itemsize * 8}{dict(u='U', i='S', f='F')[kind[0]]}C{channels}"
+    encoding = NAMED.get((kind, channels), cv) if named else cv
+    return Image(data=array, format=fmt, encoding=encoding)
+
+
 IMAGES = st.builds(
-    lambda array, fmt, encoding: Image(data=array, format=fmt, encoding=encoding),
+    encoded_image,
     st.sampled_from([np.uint8, np.uint16, np.float32]).flatmap(
         lambda dtype: hnp.arrays(
             dtype,
@@ -40,7 +53,7 @@ IMAGES = st.builds(
         )
     ),
     st.sampled_from(["png", "raw"]),
-    st.sampled_from(["rgb8", "bgr8", "mono16", "32FC1"]),
+    st.booleans(),
 )
 POINT_CLOUDS = st.builds(
     PointCloud,

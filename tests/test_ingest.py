@@ -76,6 +76,11 @@ MALFORMED = [
      "svm\x1b]52;c;ZWNobyBwd25lZAo=\x07", f"{CLASSIFICATION}.source", "control characters"),
     ("a right-to-left override in the robot's name", "robot", "pr2\u202egpj.exe", "robot",
      "control characters"),
+    ("a crop of three channels said to be mono8 (stored as said, misleading every reader)",
+     f"{ROI}.crop.encoding", "mono8", f"{ROI}.crop",
+     "encoding 'mono8' is 1 channel(s) of uint8, but the pixels are 3 channel(s) of uint8"),
+    ("an encoding that is none", f"{ROI}.crop.encoding", "bogus99", f"{ROI}.crop",
+     "encoding 'bogus99' is not an image encoding: one of ROS'"),
     ("a type's short name (its label was lost as an unknown type's)",
      f"{CLASSIFICATION}._type", "Classification", CLASSIFICATION,
      "named in full, with their namespace, such as 'lab.annotation.Weight'; did you mean "

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -198,6 +199,12 @@ class Image(Model):
         check_pixels(data, image_limit(info))
         return data
 
+    @model_validator(mode="after")
+    def _pixels_as_encoded(self) -> Image:
+        if problem := encoding_problem(self.encoding, self.data):
+            raise ValueError(problem)
+        return self
+
     @property
     def height(self) -> int:
         return self.data.shape[0]
@@ -208,6 +215,36 @@ class Image(Model):
 
 
 register_codec(Image, ImageCodec(Image, "pm.raw.Image"))
+
+
+# ROS' image encodings (sensor_msgs/image_encodings.h): the pixels' channels and their type
+NAMED_ENCODINGS = {
+    **{f"{name}{bits}": (channels, f"u{bits // 8}") for bits in (8, 16)
+       for name, channels in (("mono", 1), ("bgr", 3), ("rgb", 3), ("bgra", 4), ("rgba", 4))},
+    **{f"bayer_{order}{bits}": (1, f"u{bits // 8}") for bits in (8, 16)
+       for order in ("rggb", "bggr", "gbrg", "grbg")},
+    "yuv422": (2, "u1"),
+}
+CV_ENCODING = re.compile(r"(8|16|32|64)([USF])C([1-4])")  # 16UC1, 32FC1: OpenCV's names
+CV_KINDS = {"U": "u", "S": "i", "F": "f"}
+
+
+def encoding_problem(encoding: str, data: np.ndarray) -> str | None:
+    """Why the pixels are not what the encoding says (channels, type), or None. An encoding
+    stored against its pixels misleads every reader (a mono8 of three channels)."""
+    if (cv := CV_ENCODING.fullmatch(encoding)) is not None:
+        channels, kind = int(cv[3]), f"{CV_KINDS[cv[2]]}{int(cv[1]) // 8}"
+    elif encoding in NAMED_ENCODINGS:
+        channels, kind = NAMED_ENCODINGS[encoding]
+    else:
+        return (f"encoding {encoding!r} is not an image encoding: one of ROS' (mono8, mono16, "
+                "bgr8, rgb8, bgra8, rgba8, bgr16, ..., bayer_rggb8, yuv422) or OpenCV's "
+                "(8UC3, 16UC1, 32FC1, ...)")
+    has = data.shape[2] if data.ndim == 3 else 1
+    if (has, f"{data.dtype.kind}{data.dtype.itemsize}") != (channels, kind):
+        return (f"encoding {encoding!r} is {channels} channel(s) of {np.dtype(kind)}, but the "
+                f"pixels are {has} channel(s) of {data.dtype}")
+    return None
 
 
 def check_pixels(data: np.ndarray, limit: int) -> None:

@@ -124,3 +124,14 @@ def test_lookups_appended_later_do_not_rename_the_jar_live_or_rebuilt(store):
     for question in ("sigg bottle", "sigg", "SiggBottle", "sigg_bottle"):
         assert [o.object_id for o in engine.where_is(question)] == [jar_id], question
         assert len(engine.clusters(text=question).items) == len(scenes), question
+
+
+def test_a_lookup_s_long_or_odd_title_makes_a_name_not_a_failed_job():
+    """A brand or product name is a name (one line, 200 characters); a service's title is
+    any text: it is made one, not refused (the job failed on it)."""
+    odd = [Finding(category="logo", title="Storck\n\x1b[2J" + "x" * 300, box=None),
+           Finding(category="product", title="Knoppers " * 40, brand="Storck\tGmbH", box=None)]
+    logo, product = [a for a in lookup(0, odd) if isinstance(a, Logo | Product)]
+    assert logo.brand.startswith("Storck  [2J") and len(logo.brand) == 200
+    assert len(product.name) == 200 and product.brand == "Storck GmbH"
+    assert Logo.model_validate(logo.model_dump()) and Product.model_validate(product.model_dump())

@@ -37,6 +37,7 @@ from percept_memory.memory.types import (
     WebLookup,
 )
 from percept_memory.memory.types.annotations import LookupProvenance, lookup_annotation_id
+from percept_memory.memory.types.base import as_name
 
 SOURCE = "LookupWorker"
 
@@ -81,9 +82,10 @@ def annotations_for(findings: list[Finding], provenance: LookupProvenance, roi: 
         if finding.category == "text":
             out.append(Text(source=source, text=finding.title, box=box))
         elif finding.category == "logo":
-            out.append(Logo(source=source, brand=finding.title, box=box))
+            out.append(Logo(source=source, brand=as_name(finding.title), box=box))
         elif finding.category == "product":
-            out.append(Product(source=source, name=finding.title, brand=finding.brand,
+            out.append(Product(source=source, name=as_name(finding.title),
+                               brand=finding.brand and as_name(finding.brand),
                                properties=finding.properties))
         elif finding.category == "barcode":
             symbology = "EAN-13" if len(finding.title) == 13 and finding.title.isdigit() else ""

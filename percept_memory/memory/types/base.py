@@ -90,6 +90,12 @@ Name = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidator(no_
 """A name people read in lists, pages and the CLI: one line of at most MAX_NAME characters
 (texts, such as OCR's or a log message, are not names)."""
 
+
+def as_name(text: str) -> str:
+    """A text made a name (what another program answered: a lookup's title as a brand): its
+    control characters as spaces, its first MAX_NAME characters."""
+    return CONTROLS.sub(" ", text)[:MAX_NAME]
+
 MAX_TIMESTAMP = (2**63 - 1) // 10**9 * 10**9
 """2262-04-11T23:47:16Z, the last whole second int64 nanoseconds hold (pages round a time up
 to whole seconds)."""

@@ -7,7 +7,6 @@ largest int64 the engine uses for it. Moments are the fields results.py marks as
 from __future__ import annotations
 
 import json
-import re
 import typing
 from typing import Any
 
@@ -16,6 +15,7 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 
 from percept_memory.memory.types import iso_from_timestamp
+from percept_memory.memory.types.base import CONTROLS
 from percept_memory.queries.results import NOW, Moment
 
 COLUMNS = {  # what a table of each kind of row shows, in order
@@ -34,17 +34,14 @@ COLUMNS = {  # what a table of each kind of row shows, in order
     "Timing": ("annotator", "runs", "mean_ms", "max_ms", "total_ms", "warnings", "errors"),
 }
 MOMENT_KEYS = {"time", "first_seen", "last_seen"}  # in answers that are plain documents
-# what a terminal acts on instead of showing: C0 and C1 controls (escape sequences that clear
-# the screen, retitle the window or write the clipboard; a newline that fakes a row), and the
-# bidirectional overrides that show text in another order than it is
-CONTROLS = re.compile("[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+NESTED = ("state", "region", "position")  # what a row's nested object shows (Moved's places)
+WIDEST = 40  # characters of a cell, beyond which it is cut
 
 
 def printable(text: str) -> str:
-    """Stored text as a terminal shows it, each control character as its escape (\\x1b)."""
+    """Stored text as a terminal shows it: each character a terminal would act on (types.
+    base.CONTROLS: an escape sequence, a newline faking a row) as its escape (\\x1b)."""
     return CONTROLS.sub(lambda m: m[0].encode("unicode_escape").decode(), text)
-NESTED = ("state", "region", "position")  # what a row's nested object shows (Moved's places)
-WIDEST = 40  # characters of a cell, beyond which it is cut
 
 
 def as_json(answer: Any) -> str:

@@ -213,7 +213,8 @@ def stays(events: list[dict]) -> list[Stay]:
     """Events of one object, oldest first, as the places it was at: an appear or a move
     starts a stay, stay and newview extend it, hidden marks it unseen (still believed
     there), disappear or the next move ends it. A place's position is the mean of where it
-    was seen there (each sighting is one noisy observation)."""
+    was seen there (each sighting is one noisy observation; unseen there, where it was
+    believed)."""
     out: list[Stay] = []
     seen_at: list[list] = []  # per stay, the positions of its sightings
     for e in events:
@@ -224,8 +225,8 @@ def stays(events: list[dict]) -> list[Stay]:
                 current.until, current.ended_by = t, "move"
             if kind == "disappear":
                 continue
-            current = Stay(region=e.get("region"), since=t, last_seen=t,
-                           observations=int(kind != "hidden"),
+            current = Stay(region=e.get("region"), position=e.get("position"), since=t,
+                           last_seen=t, observations=int(kind != "hidden"),
                            hidden_since=t if kind == "hidden" else None)
             out.append(current)
             seen_at.append([])

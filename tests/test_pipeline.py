@@ -885,3 +885,30 @@ def test_a_rejection_takes_out_a_cluster_this_process_stored_from_json(empty, we
     memory_pipeline(empty).drain(timeout=120)
     assert empty.clusters.find_one({"_id": cluster_id}).get("object_id") is None
     assert not empty.db[EVENTS].find_one({"cluster_id": cluster_id})
+
+
+def test_an_object_not_yet_made_again_by_a_rebuild_is_a_404_that_says_so(empty, week):
+    """Midway through a rebuild its page redirected to itself (its clusters still name it,
+    the object is not made again yet: a redirect loop), and where-is of its id answered
+    'no object or cluster', though both are."""
+    from fastapi.testclient import TestClient
+
+    from percept_memory.memory.settings import Settings
+    from percept_memory.webui.app import create_app
+    from percept_memory.webui.queries import REBUILDING_HEADER
+
+    ingest_consolidated(empty, week.scenes[:20])
+    late = empty.db[OBJECTS].find_one(sort=[("first_seen", -1)])["_id"]
+    client = TestClient(create_app(empty, Settings(consolidator=False)), base_url=LOCAL,
+                        follow_redirects=False)
+    request_rebuild(empty)  # and, as the rebuild begins, the map's objects forgotten
+    empty.db[OBJECTS].delete_one({"_id": late})
+    page = client.get(f"/objects/{late}")
+    assert page.status_code == 404 and "is being rebuilt" in page.text
+    answer = client.get("/api/where-is", params={"x": str(late)})
+    assert answer.status_code == 404 and answer.headers[REBUILDING_HEADER] == kitchen_week.MAP
+    assert (f"the belief of map {kitchen_week.MAP} is being rebuilt"
+            in answer.json()["error"]["message"])
+    memory_pipeline(empty).drain(timeout=600)
+    assert client.get(f"/objects/{late}").status_code == 200
+    assert client.get("/api/where-is", params={"x": str(late)}).status_code == 200

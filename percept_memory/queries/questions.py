@@ -114,7 +114,8 @@ def _by_id(given: ObjectId) -> Plan[dict]:
     found = yield Find(OBJECTS, {"_id": given}, OBJECT_FIELDS)
     if found:
         return found[0]
-    cluster = yield Find(CLUSTERS, {"_id": given}, {"object_id": 1, "annotations._type": 1})
+    cluster = yield Find(CLUSTERS, {"_id": given}, {"object_id": 1, "annotations._type": 1,
+                                                    "search.map": 1})
     if not cluster:
         raise NotFound("object or cluster", given)
     if cluster[0].get("object_id") is None:
@@ -122,8 +123,11 @@ def _by_id(given: ObjectId) -> Plan[dict]:
         raise NotFound("object of the cluster", given, REJECTED if REJECTION in said else
                        "its scene is not consolidated yet (`pmem pipeline` says how far)")
     found = yield Find(OBJECTS, {"_id": cluster[0]["object_id"]}, OBJECT_FIELDS)
-    if not found:
-        raise NotFound("object or cluster", given)
+    if not found:  # (its object is gone from the belief, which is being made again)
+        map_name = cluster[0].get("search", {}).get("map")
+        raise NotFound("object of the cluster", given, "it is not in the belief now"
+                       + (f": the belief of map {map_name} is being rebuilt (`pmem pipeline` "
+                          "says how far)" if map_name else ""))
     return found[0]
 
 

@@ -62,10 +62,14 @@ def routes(store: MemoryStore) -> APIRouter:
         def load():
             believed = objects.find_one({"_id": key})
             if believed is None:  # an object is named by its first observation: merged into
-                now = store.clusters.find_one({"_id": key}, {"object_id": 1})  # another since?
-                if now is None or now.get("object_id") is None:
-                    raise PageError(404, f"no object {key}")
-                return now["object_id"]
+                now = store.clusters.find_one({"_id": key}, {"object_id": 1, "search.map": 1})
+                if now is not None and now.get("object_id") not in (None, key):  # another
+                    return now["object_id"]
+                map_name = now and now.get("search", {}).get("map")
+                if map_name and rebuilding(store.db, map_name):  # (its clusters still name it)
+                    raise PageError(404, f"object {key} is not in the belief now: the belief of "
+                                         f"map {map_name} is being rebuilt; reload in a moment")
+                raise PageError(404, f"no object {key}")
             history = list(events.find({"object_id": key}).sort("time", DESCENDING)
                            .limit(EVENTS_SHOWN))
             placed = [e for e in reversed(history) if e.get("position")]

@@ -77,13 +77,16 @@ def _answered(run, rebuilt, query: BaseModel, response: Response) -> Any:
     maps = set(rebuilt(query))
     try:
         answer = run(query)
-    except NotFound as error:
-        raise HTTPException(404, str(error)) from None
+    except NotFound as error:  # (an object not in a belief being made again: it may come)
+        raise HTTPException(404, str(error), headers=_rebuilding(maps)) from None
     except QueryError as error:
         raise HTTPException(422, str(error)) from None
-    if maps := sorted(maps | set(rebuilt(query))):
-        response.headers[REBUILDING_HEADER] = ",".join(quote(m, safe="") for m in maps)
+    response.headers.update(_rebuilding(maps | set(rebuilt(query))))
     return answer
+
+
+def _rebuilding(maps: set[str]) -> dict[str, str]:
+    return {REBUILDING_HEADER: ",".join(quote(m, safe="") for m in sorted(maps))} if maps else {}
 
 
 def small_body(request: Request) -> None:

@@ -76,6 +76,11 @@ MALFORMED = [
      "svm\x1b]52;c;ZWNobyBwd25lZAo=\x07", f"{CLASSIFICATION}.source", "control characters"),
     ("a right-to-left override in the robot's name", "robot", "pr2\u202egpj.exe", "robot",
      "control characters"),
+    ("a box's image named by a MiB", f"{ROI}.image", "i" * 2**20, f"{ROI}.image",
+     "at most 200 characters"),
+    ("an escape in a class of a classifier's confidences",
+     f"{CLASSIFICATION}.confidences", {"cup\x1b[2J": 0.5},
+     f"{CLASSIFICATION}.confidences.cup\x1b[2J.[key]", "control characters"),
     ("a crop of three channels said to be mono8 (stored as said, misleading every reader)",
      f"{ROI}.crop.encoding", "mono8", f"{ROI}.crop",
      "encoding 'mono8' is 1 channel(s) of uint8, but the pixels are 3 channel(s) of uint8"),
@@ -366,6 +371,9 @@ def test_what_ingests_is_valid_by_the_published_schema_and_mistakes_are_not():
              ("our namespace, no such type", ["clusters", 0, "annotations", 0, "_type"],
               "pm.annotation.Bogus"),
              ("a short type name", ["clusters", 0, "annotations", 0, "_type"], "Classification"),
+             ("a newline in a name", ["clusters", 0, "annotations", 1, "class_name"], "cup\nmug"),
+             ("a name of 201 characters", ["robot"], "r" * 201),
+             ("an escape in an image's name", ["clusters", 0, "hypotheses", 0, "image"], "\x1b"),
              ("a time before 1970", ["timestamp"], -1)]
     for name, path, value in wrong:
         scene = json.loads(json.dumps(with_images))

@@ -98,7 +98,7 @@ class Classification(Annotation):
     confidence: Probability | None = None
     classifier: Name = ""
     feature: Name = Field(default="", validation_alias=AliasChoices("feature", "featurename"))
-    confidences: dict[str, Finite] = {}
+    confidences: dict[Name, Finite] = {}
 
     def views(self) -> list[str]:
         return [self.class_name]

@@ -76,7 +76,7 @@ def _an_integer(value: Any) -> Any:
 
 # what a terminal or a page acts on instead of showing: C0 and C1 controls (a newline, the
 # escape sequences that clear a screen or write the clipboard) and the bidirectional overrides
-CONTROLS = re.compile("[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
+CONTROLS = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029\u202a-\u202e\u2066-\u2069]")
 MAX_NAME = 200  # characters of a name: a robot, map, region, annotator, class, image
 
 
@@ -86,7 +86,9 @@ def no_controls(text: str) -> str:
     return text
 
 
-Name = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidator(no_controls)]
+Name = Annotated[str, StringConstraints(max_length=MAX_NAME), AfterValidator(no_controls),
+                 WithJsonSchema({"type": "string", "maxLength": MAX_NAME,
+                                 "pattern": f"^[^{CONTROLS.pattern[1:-1]}]*$"})]
 """A name people read in lists, pages and the CLI: one line of at most MAX_NAME characters
 (texts, such as OCR's or a log message, are not names)."""
 

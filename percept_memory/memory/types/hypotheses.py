@@ -7,7 +7,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from . import compare
 from .appearance import crop_descriptors, hash_bits
-from .base import Model, stored_type
+from .base import Model, Name, stored_type
 from .json_forms import image_limit
 from .raw import Box, Finite, Image, NDArray, PointCloud, Vec3, check_pixels
 
@@ -33,7 +33,7 @@ class ImageROI(Hypothesis):
     (64-bit pHash as 16 hex digits) for fast appearance comparison."""
 
     box: Box
-    image: str = "color"  # which of the scene's images the box refers to
+    image: Name = "color"  # which of the scene's images the box refers to
     mask: Image | None = None
     crop: Image | None = None
     phash: str | None = Field(default=None, pattern=PHASH_PATTERN)

@@ -9,6 +9,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import urllib.error
 import urllib.request
 
 import pytest
@@ -86,21 +87,24 @@ def test_the_server_its_workers_and_the_cli_know_the_types_pmem_types_names(
     assert "Traceback" not in server.stderr.read()
     try:  # the CLI: `pmem reindex` works the labels out again, from the class
         MongoClient(mongo_uri)[db]["clusters"].update_many({}, {"$set": {"search.labels": []}})
-        # and one stored by a process that knew no such type, which does not fit it
-        unfit = {"_type": "lab.annotation.Heft", "source": "Scale", "grams": "a lot"}
+        # and ones stored by a process that knew no such type: one does not fit it, one
+        # lacks its field, one is heavy in a form only JSON takes (a string for a number)
+        heft = {"_type": "lab.annotation.Heft", "source": "Scale"}
+        stored_before = [{**heft, "grams": "a lot"}, heft, {**heft, "grams": "1500"}]
         store = MemoryStore(MongoClient(mongo_uri, **CLIENT_OPTIONS), db, gridfs_threshold=2048)
         ids = store.put_scene(Scene(timestamp=1, robot="scale", clusters=[
-            Cluster(annotations=[Unknown(type_name=unfit["_type"], fields=unfit)])]))
+            Cluster(annotations=[Unknown(type_name=heft["_type"], fields=fields)])
+            for fields in stored_before]))
         done = pmem(env, "reindex")
         assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
-        assert ("Warning: 1 annotation(s) do not fit their type, such as cluster "
+        assert ("Warning: 2 annotation(s) do not fit their type, such as cluster "
                 f"{ids.cluster_ids[0]}: lab.annotation.Heft: grams: Input should be a valid "
                 "number") in done.stderr
         kept = store.clusters.find_one({"_id": ids.cluster_ids[0]})["annotations"][0]
-        assert {k: kept[k] for k in unfit} == unfit  # as stored
+        assert {k: kept[k] for k in stored_before[0]} == stored_before[0]  # as stored
         found = pmem(env, "query", "clusters", "--labelled", "heavy", "--count", "--limit", "0",
                      "--json")
-        assert json.loads(found.stdout)["total"] == 1
+        assert json.loads(found.stdout)["total"] == 2  # (the one posted, the one now read)
     finally:
         MongoClient(mongo_uri).drop_database(db)
 
@@ -129,3 +133,56 @@ def test_an_installed_package_declares_its_types_by_entry_point(monkeypatch):
                         lambda group: [point] if group == modules.ENTRY_POINTS else [])
     assert modules.type_modules("mine, lab_pkg.types") == ["mine", "lab_pkg.types"]
     assert modules.type_modules("") == ["lab_pkg.types"]
+
+
+BUGGY = textwrap.dedent('''
+    from percept_memory.memory.types import Annotation, stored_type
+
+    @stored_type("lab.annotation.Grip")
+    class Grip(Annotation):
+        force: float
+
+        def labels(self) -> list[str]:
+            return ["firm"] if 10 / (self.force - 2.0) > 1 else []
+''')
+
+
+def test_a_type_whose_own_code_fails_is_named_not_a_server_error(mongo_uri, tmp_path,
+                                                                 kitchen_rgb):
+    """A type's labels() that raises on an annotation: a plain-text 500 (a small body or a
+    large one, made by the worker processes) and a traceback from pmem reindex."""
+    (tmp_path / "grip_types.py").write_text(BUGGY)
+    db = "pmem_test_type_modules_buggy"
+    env = pmem_env(mongo_uri, db, tmp_path, PMEM_TYPES="grip_types",
+                   PMEM_INGEST_PROCESSES="2", PMEM_CONSOLIDATOR="false")
+    port = free_port()
+    server = subprocess.Popen([sys.executable, "-m", "percept_memory", "serve", "--port",
+                               str(port)], env=env, stderr=subprocess.PIPE, text=True)
+    gripped = {"_type": "lab.annotation.Grip", "source": "Gripper", "force": 2.0}
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_until_serving(f"{base}/api/schema/scene")
+        for first, count in ((0, 1), (1, 24)):
+            scenes = body_of(kitchen_rgb, first, count)
+            scenes[-1]["clusters"][0]["annotations"].append(gripped)
+            request = urllib.request.Request(f"{base}/api/scenes", json.dumps(scenes).encode(),
+                                             {"Content-Type": "application/json"})
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(request, timeout=120)
+            assert refused.value.code == 422, count
+            message = json.load(refused.value)["error"]["message"]
+            assert "lab.annotation.Grip.labels() failed on annotation" in message
+            assert "ZeroDivisionError: float division by zero" in message
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+    assert "Traceback" not in server.stderr.read()
+    try:  # stored by a process that knew no such type, then reindexed by one that does
+        store = MemoryStore(MongoClient(mongo_uri, **CLIENT_OPTIONS), db, gridfs_threshold=2048)
+        store.put_scene(Scene(timestamp=1, robot="gripper", clusters=[
+            Cluster(annotations=[Unknown(type_name=gripped["_type"], fields=gripped)])]))
+        done = pmem(env, "reindex")
+        assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+        assert "lab.annotation.Grip.labels() failed" in done.stderr
+    finally:
+        MongoClient(mongo_uri).drop_database(db)

@@ -20,16 +20,18 @@ from pydantic import ValidationError
 
 from percept_memory.converters import (
     BLOB_KEY,
+    TYPE_KEY,
     DecodeContext,
     EncodeContext,
     Unknown,
+    class_for,
     decode,
     encode,
     name_of,
 )
 
 from . import search_keys
-from .errors import NotFound, SceneExists, problems_line
+from .errors import NotFound, SceneExists, TypeHookFailed, problems_line
 from .schema import BINARIES, GRIDFS_CHUNKS, GRIDFS_FILES, LABELS, TERMS
 from .types import Annotation, Cluster, Scene, datetime_from_timestamp
 from .types.curation import in_force
@@ -415,8 +417,9 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str, map_name: str | 
     of two maps are in two frames)."""
     annotations = [a for a in cluster.annotations if isinstance(a, Annotation)]
     said = in_force(annotations)  # a correction taken back is no longer found by its label
-    labels = {search_keys.normal_label(label) for a in said for label in a.labels()} - {""}
-    texts = [text for a in said for text in a.texts() if text]
+    labels = {search_keys.normal_label(label) for a in said
+              for label in _hook(a, "labels")} - {""}
+    texts = [text for a in said for text in _hook(a, "texts") if text]
     position = cluster.position
     return {
         "time": timestamp,
@@ -432,6 +435,16 @@ def search_fields(cluster: Cluster, timestamp: int, robot: str, map_name: str | 
             | {a.type_name for a in cluster.annotations if isinstance(a, Unknown)}
         ),
     }
+
+
+def _hook(annotation: Annotation, name: str) -> list[str]:
+    """What a type's labels() or texts() says of an annotation: a type's own code, which may
+    fail on it (TypeHookFailed names the type and why, not a server error)."""
+    try:
+        return list(getattr(annotation, name)())
+    except Exception as error:
+        raise TypeHookFailed(f"{annotation.type_name}.{name}() failed on annotation "
+                             f"{annotation.id}: {type(error).__name__}: {error}") from None
 
 
 def vocabulary_documents(terms: Iterable[str], labels: Iterable[str]) -> dict[str, list[dict]]:
@@ -477,19 +490,31 @@ def fitted(cluster: Cluster) -> tuple[Cluster, list[str]]:
     what did not fit. Reading trusts what was validated when it was stored; one stored before
     its class was imported (as another program's) was not, and may not fit: it is kept as
     stored, an Unknown saying why, not read into a class whose labels() it would break."""
-    kept, problems = [], []
+    kept, problems, changed = [], [], False
     for annotation in cluster.annotations:
         if isinstance(annotation, Annotation):
             kind = type(annotation)
             try:
-                kind.model_validate({k: getattr(annotation, k) for k in kind.model_fields})
+                valid = kind.model_validate({k: getattr(annotation, k) for k in kind.model_fields})
             except ValidationError as error:
                 problem = f"{name_of(kind)}: {problems_line(error)}"
                 annotation = Unknown.model_construct(type_name=name_of(kind),
                                                      fields=encode(annotation), problem=problem)
                 problems.append(problem)
+            else:  # as validating makes it (a number stored as "1500" read as 1500.0)
+                if valid != annotation:
+                    valid.keep_unknown_fields(annotation.unknown_fields() or {})
+                    annotation, changed = valid, True
+        elif isinstance(annotation, Unknown) and (kind := class_for(annotation.type_name)):
+            try:  # (stored in a form JSON takes and reading does not: an array as a list)
+                annotation = kind.model_validate({k: v for k, v in annotation.fields.items()
+                                                  if k != TYPE_KEY})
+                changed = True
+            except ValidationError as error:
+                problems.append(f"{annotation.type_name}: {problems_line(error)}")
         kept.append(annotation)
-    return (cluster.model_copy(update={"annotations": kept}) if problems else cluster), problems
+    fitting = cluster.model_copy(update={"annotations": kept}) if problems or changed else cluster
+    return fitting, problems
 
 
 def decode_cluster(doc: Mapping, blobs: Mapping[str, bytes]) -> Cluster:

@@ -70,6 +70,11 @@ class SceneExists(DuplicateId):
         return SceneExists, self.key
 
 
+class TypeHookFailed(StoreError):
+    """An annotation type's own code (labels(), texts()) failed on an annotation: the data
+    fits the class, the class cannot describe it (a bug of the type, named)."""
+
+
 class Unavailable(StoreError):
     """No MongoDB server could be selected for a write (PMEM_MONGO_TIMEOUT_MS)."""
 

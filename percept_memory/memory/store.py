@@ -37,6 +37,7 @@ from .errors import (
     StoreError,
     TooLarge,
     TransactionTooLarge,
+    TypeHookFailed,
     Unavailable,
     duplicate_key,
     reason,
@@ -522,7 +523,10 @@ class MemoryStore(StoreBase):
             return cluster
 
         for doc in self.clusters.find({}, {"_id": 1}).sort("_id", 1):
-            self._rewrite_cluster(doc["_id"], fitted)
+            try:
+                self._rewrite_cluster(doc["_id"], fitted)
+            except TypeHookFailed as error:  # (its search keys stay as they were)
+                unfit.append(f"cluster {doc['_id']}: {error}")
             count += 1
             if progress:
                 progress()

@@ -14,6 +14,7 @@ from percept_memory.memory.errors import (
     NotFound,
     TooLarge,
     TransactionTooLarge,
+    TypeHookFailed,
     Unavailable,
 )
 
@@ -42,6 +43,8 @@ def store_status(error: Exception) -> int:
         return 409
     if isinstance(error, Unavailable):
         return 503
+    if isinstance(error, TypeHookFailed):
+        return 422
     return 404 if isinstance(error, NotFound) else 500
 
 

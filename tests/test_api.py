@@ -55,6 +55,16 @@ def test_every_annotation_posted_is_named_by_the_id_at_its_place(client, store):
     assert [a.get("force") for a in stored] == [3.5, None, 4.0, None]
     again = client.post("/api/scenes", json=scene).json()["scenes"][0]
     assert not again["created"] and again["annotation_ids"][0] == ids
+    scene["timestamp"] = STAMP + 500  # an id of null is none; one id twice names nothing
+    scene["clusters"][0]["annotations"][0]["_id"] = None
+    given = client.post("/api/scenes", json=scene).json()["scenes"][0]["annotation_ids"][0]
+    assert ObjectId.is_valid(given[0]) and len(set(given)) == 4
+    twice = {"$oid": str(ObjectId())}
+    scene["timestamp"] = STAMP + 501
+    scene["clusters"][0]["annotations"][0]["_id"] = scene["clusters"][0]["annotations"][2][
+        "_id"] = twice
+    refused = client.post("/api/scenes", json=scene)
+    assert refused.status_code == 422 and "is given twice" in refused.text
 
 
 def test_a_stored_scene_and_cluster_are_read_back_as_json(client, store):

@@ -186,7 +186,9 @@ def annotation_id(annotation: Annotation | Unknown):
     """The id of an annotation, assigned where it has none: a foreign (Unknown) one's `_id`
     too, so that each annotation a scene is stored with is named by the id at its place."""
     if isinstance(annotation, Unknown):
-        return annotation.fields.setdefault("_id", ObjectId())
+        if annotation.fields.get("_id") is None:  # (none, or null)
+            annotation.fields["_id"] = ObjectId()
+        return annotation.fields["_id"]
     return annotation.ensure_id()
 
 

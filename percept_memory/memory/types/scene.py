@@ -115,8 +115,8 @@ class Scene(Identifiable):
         cluster) given the same id cannot both be stored."""
         _once([c.id for c in self.clusters], "clusters")
         for index, cluster in enumerate(self.clusters):
-            _once([a.id for a in cluster.annotations if isinstance(a, Identifiable)],
-                  f"clusters.{index}.annotations")
+            _once([a.id if isinstance(a, Identifiable) else a.fields.get("_id")
+                   for a in cluster.annotations], f"clusters.{index}.annotations")
         return self
 
     @model_validator(mode="after")

@@ -35,7 +35,7 @@ from percept_memory.memory.settings import (
     settings_help,
     settings_problems,
 )
-from percept_memory.memory.types.modules import TypeModuleError, import_type_modules
+from percept_memory.memory.types.modules import TypeModuleError
 
 HELP = f"""percept-memory: a long-term spatio-temporal memory for robot perception.
 
@@ -62,7 +62,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except (EmbeddedMongoError, StoreError, IngestError, SourceError, ValidationError,
-                BackendSetupError) as exc:
+                BackendSetupError, TypeModuleError) as exc:
             raise click.ClickException(one_line(exc)) from exc
         except click.UsageError as exc:  # (a subcommand's options and arguments)
             hint = f" (see `{exc.ctx.command_path} --help`)" if exc.ctx else ""
@@ -96,10 +96,6 @@ def main(ctx: click.Context) -> None:
         ctx.obj = Settings()
     except ValidationError as error:
         raise click.ClickException(settings_problems(error)) from None
-    try:
-        import_type_modules(ctx.obj.types)
-    except TypeModuleError as error:
-        raise click.ClickException(one_line(error)) from None
 
 
 # --- pmem db: the embedded mongod --------------------------------------------------------------

@@ -113,14 +113,23 @@ def test_the_server_its_workers_and_the_cli_know_the_types_pmem_types_names(
     ("no_such_module", "PMEM_TYPES: cannot import 'no_such_module': ModuleNotFoundError"),
     ("broken_types", "PMEM_TYPES: cannot import 'broken_types': ZeroDivisionError"),
     ("lab types", "PMEM_TYPES: 'lab types' is not a Python module name"),
+    ("exiting_types", "PMEM_TYPES: cannot import 'exiting_types': SystemExit: 3"),
 ])
 def test_a_module_that_cannot_be_imported_is_one_line(mongo_uri, tmp_path, types, words):
     (tmp_path / "broken_types.py").write_text("1 / 0\n")
+    (tmp_path / "exiting_types.py").write_text("import sys\nsys.exit(3)\n")
     done = pmem(pmem_env(mongo_uri, "pmem_test_type_modules_bad", tmp_path, PMEM_TYPES=types),
                 "info")
     assert done.returncode == 1 and "Traceback" not in done.stderr
     (line,) = done.stderr.splitlines()
     assert line.startswith("Error: ") and words in line
+
+
+def test_the_database_s_commands_and_help_need_no_annotation_types(mongo_uri, tmp_path):
+    """A module that cannot be imported stopped every command: `pmem db stop` and help too."""
+    env = pmem_env(mongo_uri, "pmem_test_type_modules_bad", tmp_path, PMEM_TYPES="nope_mod")
+    assert pmem(env, "info", "--help").returncode == 0
+    assert pmem(env, "db", "status").returncode == 0
 
 
 def test_an_installed_package_declares_its_types_by_entry_point(monkeypatch):
@@ -131,8 +140,12 @@ def test_an_installed_package_declares_its_types_by_entry_point(monkeypatch):
     point = metadata.EntryPoint("lab", "lab_pkg.types", modules.ENTRY_POINTS)
     monkeypatch.setattr(modules, "entry_points",
                         lambda group: [point] if group == modules.ENTRY_POINTS else [])
-    assert modules.type_modules("mine, lab_pkg.types") == ["mine", "lab_pkg.types"]
-    assert modules.type_modules("") == ["lab_pkg.types"]
+    assert modules.type_modules("mine, lab_pkg.types") == {
+        "lab_pkg.types": "PMEM_TYPES", "mine": "PMEM_TYPES"}
+    assert modules.type_modules("") == {"lab_pkg.types": "the entry point 'lab' of a package"}
+    with pytest.raises(modules.TypeModuleError, match="^the entry point 'lab' of a package: "
+                                                      "cannot import 'lab_pkg.types'"):
+        modules.import_type_modules("")
 
 
 BUGGY = textwrap.dedent('''

@@ -39,6 +39,7 @@ from .store import (
     vocabulary_upserts,
 )
 from .types import Annotation, Cluster, Scene
+from .types.modules import import_type_modules
 
 
 class AsyncMemoryStore(StoreBase):
@@ -50,6 +51,7 @@ class AsyncMemoryStore(StoreBase):
         from .mongod import resolve_uri
 
         settings = settings or Settings()
+        import_type_modules(settings.types)  # (what it stores and reads is of these types too)
         uri = resolve_uri(settings)
         store = cls(AsyncMongoClient(uri, **CLIENT_OPTIONS), settings.db,
                     gridfs_threshold=settings.gridfs_threshold)

@@ -67,6 +67,7 @@ from .schema import (
 )
 from .settings import Settings
 from .types import Annotation, Cluster, Scene
+from .types.modules import import_type_modules
 
 CLIENT_OPTIONS = {"tz_aware": True, "appname": "percept-memory"}
 log = logging.getLogger(__name__)
@@ -224,6 +225,7 @@ class MemoryStore(StoreBase):
         from .mongod import resolve_uri
 
         settings = settings or Settings()
+        import_type_modules(settings.types)  # (what it stores and reads is of these types too)
         uri = resolve_uri(settings)
         client = MongoClient(uri, serverSelectionTimeoutMS=settings.mongo_timeout_ms,
                              **CLIENT_OPTIONS)

@@ -19,20 +19,23 @@ class TypeModuleError(ImportError):
     """A module of annotation types could not be imported (the message names it and why)."""
 
 
-def type_modules(named: str) -> list[str]:
-    """The modules named (comma-separated), then those installed packages declare."""
-    listed = [name.strip() for name in named.split(",") if name.strip()]
-    declared = [point.module for point in entry_points(group=ENTRY_POINTS)]
-    return list(dict.fromkeys(listed + declared))
+def type_modules(named: str) -> dict[str, str]:
+    """The modules named (comma-separated), then those installed packages declare, each with
+    where it is named (to say so when it cannot be imported)."""
+    listed = {name.strip(): "PMEM_TYPES" for name in named.split(",") if name.strip()}
+    declared = {point.module: f"the entry point {point.name!r} of "
+                              f"{point.dist.name if point.dist else 'a package'}"
+                for point in entry_points(group=ENTRY_POINTS)}
+    return {**declared, **listed}
 
 
 def import_type_modules(named: str) -> list[str]:
     """Import them (their types register themselves); the modules imported."""
     modules = type_modules(named)
-    for name in modules:
+    for name, where in modules.items():
         try:
             importlib.import_module(name)
-        except Exception as exc:  # (a module's own error too: it is named, not a traceback)
-            raise TypeModuleError(f"PMEM_TYPES: cannot import {name!r}: "
-                                  f"{type(exc).__name__}: {exc}") from exc
-    return modules
+        except (Exception, SystemExit) as exc:  # (a module's own error too: named)
+            raise TypeModuleError(f"{where}: cannot import {name!r}: "
+                                  f"{type(exc).__name__}: {exc}") from None
+    return list(modules)

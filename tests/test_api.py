@@ -242,6 +242,8 @@ def test_a_configured_token_guards_writes(store):
     assert bare.status_code == 401 and "WWW-Authenticate" in bare.headers
     assert "send Authorization: Bearer <token>" in bare.json()["error"]["message"]
     assert "s3cret" not in bare.text
+    empty = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer "})
+    assert empty.status_code == 401 and "WWW-Authenticate" in empty.headers
     wrong = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer nope"})
     assert wrong.status_code == 403
     right = guarded.post("/api/scenes", json=scene, headers={"Authorization": "Bearer s3cret"})

@@ -443,8 +443,8 @@ def test_names_become_paths_every_file_system_and_unzip_take(store, kitchen_rgb)
     names: an image named rgb.png was left out ('no image the box is in'), one with .. in it
     failed every export (500), and labels made folders unzip could not create."""
     rng = np.random.default_rng(11)
-    labels = ["Cup", "cup", "CON", "é" * 200, "😀 mug"]
-    images = ["rgb.png", "../../x/CON", "depth/../color"]
+    labels = ["Cup", "cup", "CON", "é" * 200, "😀 mug", "x" * 100, "X" * 100]
+    images = ["rgb.png", "../../x/CON", "depth/../color", "RGB.png"]
     scenes = []
     for i, image in enumerate(images):
         scene = synthetic.scene(rng, 1_700_000_000_000_000_000 + i, len(labels), kitchen_rgb,
@@ -462,6 +462,7 @@ def test_names_become_paths_every_file_system_and_unzip_take(store, kitchen_rgb)
         names = archive.namelist()
         assert all(part not in ("", ".", "..") and len(part.encode()) < 255
                    for n in names for part in n.split("/")), names
+        assert len({n.casefold() for n in names}) == len(names), names
         summary = json.loads(archive.read("manifest.json"))
         assert summary["exported"] == len(labels) * len(images), (kind, summary)
         if kind == "coco":
@@ -473,3 +474,4 @@ def test_names_become_paths_every_file_system_and_unzip_take(store, kitchen_rgb)
             folders = json.loads(archive.read("classes.json"))
             assert len({f.casefold() for f in folders.values()}) == len(labels)
             assert folders["CON"] == "_CON" and len(folders["é" * 200]) <= 60
+            assert all(len(folder) <= 60 for folder in folders.values())

@@ -104,7 +104,7 @@ def authorise(request: Request, token: str | None) -> None:
         raise ApiError(401, "this server needs a write token: send Authorization: Bearer <token>",
                        headers=CHALLENGE)
     scheme, _, value = given.partition(" ")
-    if scheme.lower() != "bearer":
+    if scheme.lower() != "bearer" or not value.strip():
         raise ApiError(401, "the write token goes after the scheme: send Authorization: "
                             "Bearer <token>", headers=CHALLENGE)  # (what came is not echoed)
     if not secrets.compare_digest(value.encode(), token.encode()):

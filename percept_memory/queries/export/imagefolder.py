@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from . import pixels
-from .archive import add_bytes, add_json, file_name
+from .archive import NAME_CHARACTERS, add_bytes, add_json, file_name
 from .writer import Item, Writer
 
 
@@ -34,7 +34,7 @@ class ImageFolder(Writer):
             folder, n = safe, 1
             while folder.casefold() in taken:
                 n += 1
-                folder = f"{safe}_{n}"
+                folder = f"{safe[:NAME_CHARACTERS - len(str(n)) - 1]}_{n}"
             self.folders[label] = folder
         return self.folders[label]
 

@@ -131,9 +131,10 @@ class Writer(ABC):
 
 def picture_stem(scene_id, image: str) -> str:
     """A scene image's file name: the scene's id and the image's name as a file name, with a
-    digest of the name when it had to change (two names must not give one file)."""
+    digest of the name when it had to change or has capitals (two names must not give one
+    file, rgb and RGB neither, on a file system that does not tell case apart)."""
     safe = file_name(image)
-    if safe != image:
+    if safe != image.lower():
         safe += "_" + hashlib.sha1(image.encode()).hexdigest()[:8]
     return f"{scene_id}_{safe}"
 

@@ -220,6 +220,8 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
         shown += re.findall(r'<tr id="entry-([0-9a-f]{24})">', html)
         url = (found := re.search(r'<a href="([^"]+)" rel="next">', html)) and unescape(found[1])
     assert shown == [str(e["entry"]) for e in every]
+    past = client.get(f"/catalogue?offset={len(every) + 50}").text
+    assert f"No entries after the first {len(every)}." in past and "rel=\"prev\"" in past
     view = listed.json()["entries"][0]["views"][0]
     ranked = client.get(f"/api/catalogue/seen-before/{view}").json()["entries"]
     assert ranked == catalogue.seen_before(store, _object_id(view))

@@ -86,6 +86,9 @@ MALFORMED = [
      "encoding 'mono8' is 1 channel(s) of uint8, but the pixels are 3 channel(s) of uint8"),
     ("an encoding that is none", f"{ROI}.crop.encoding", "bogus99", f"{ROI}.crop",
      "encoding 'bogus99' is not an image encoding: one of ROS'"),
+    ("our namespace in capitals (kept as another program's type)", f"{CLASSIFICATION}._type",
+     "PM.annotation.Classification", CLASSIFICATION,
+     "did you mean 'pm.annotation.Classification'"),
     ("a type's short name (its label was lost as an unknown type's)",
      f"{CLASSIFICATION}._type", "Classification", CLASSIFICATION,
      "named in full, with their namespace, such as 'lab.annotation.Weight'; did you mean "

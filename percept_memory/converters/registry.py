@@ -90,7 +90,8 @@ def reserve_namespace(prefix: str) -> None:
 
 
 def is_reserved(name: str) -> bool:
-    return any(name.startswith(prefix) for prefix in _reserved_prefixes)
+    """Whether the name is in a namespace of ours, in any case (PM.annotation.X is a typo)."""
+    return any(name.lower().startswith(prefix.lower()) for prefix in _reserved_prefixes)
 
 
 def close_names(name: str) -> list[str]:

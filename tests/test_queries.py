@@ -289,6 +289,15 @@ def test_an_object_is_at_its_place_since_it_came_there_as_where_was_says(engine,
     assert later > 20  # (objects seen again since they came: their latest event is later)
 
 
+def test_what_is_at_now_puts_each_object_where_where_is_does(engine, store, kitchen):
+    """Now, the last sighting's position disagreed with where-is's estimate (5 of 20)."""
+    objects = engine.what_is_at(map=kw.MAP).objects
+    assert objects
+    for o in objects:
+        (believed,) = engine.where_is(str(o.object_id))
+        assert o.position == believed.position
+
+
 def test_what_is_at_a_volume_is_what_is_at_its_region(engine, kitchen):
     week, _ = kitchen
     t = week.truth.scenes[100].time

@@ -325,8 +325,14 @@ def what_is_at(q: AtTime) -> Plan[Contents]:
     """The objects believed at the place at time t (default now), present or hidden."""
     t = NOW if q.t is None else q.t
     believed = yield from latest_events((yield from ever_at(q, t)), t, q)
-    names = yield from names_of([e["object_id"] for e in believed])
-    began = yield from stays_began([e["object_id"] for e in believed], t)
+    ids = [e["object_id"] for e in believed]
+    names = yield from names_of(ids)
+    began = yield from stays_began(ids, t)
+    if q.t is None:  # now: each where the belief puts it now, from all its sightings there
+        now = yield Find(OBJECTS, {"_id": {"$in": ids}}, {"position": 1})  # (as where-is)
+        estimated = {o["_id"]: o["position"] for o in now if o.get("position") is not None}
+        believed = [{**e, "position": estimated.get(e["object_id"], e.get("position"))}
+                    for e in believed]
     return Contents(t=t, objects=_objects_at(believed, names, began))
 
 

@@ -206,7 +206,8 @@ class Batch:
         """Add an observation to the track's model; learn the model again if it grew
         (True)."""
         if track.get("observations", OBSERVATIONS_PER_MODEL) >= OBSERVATIONS_PER_MODEL:
-            self._forget_redundant(track["_id"])
+            if "model" in track:  # (a new track has made none: nothing to look through)
+                self._forget_redundant(track["_id"])
             track.update(model=cluster_id, elements=[], last=[], observations=0)
         before = set(track["elements"])
         grown = GraphOfViews.of_sequence([views], after=track["last"])

@@ -833,20 +833,27 @@ def _query_command(name: str, model) -> click.Command:
 @query.command("catalogue", epilog=example("pmem query catalogue --limit 5"))
 @click.option("--map", "map_name", help="only this map's entries")
 @click.option("--limit", type=click.IntRange(1, 1000), default=100, show_default=True)
+@click.option("--offset", type=click.IntRange(0), default=0, show_default=True,
+              help="entries skipped, the most seen")
 @click.option("--json", "as_json", is_flag=True, help="print the entries as JSON")
 @click.pass_obj
-def catalogue_entries(settings: Settings, map_name: str | None, limit: int,
+def catalogue_entries(settings: Settings, map_name: str | None, limit: int, offset: int,
                       as_json: bool) -> None:
-    """Which objects this home has: the long-term catalogue's entries, the most seen first."""
+    """Which objects this home has: the long-term catalogue's entries, the most seen first
+    (how many of how many on stderr)."""
     from percept_memory import answers
     from percept_memory.memory.store import MemoryStore
     from percept_memory.queries import catalogue
 
     with MemoryStore.open(settings) as store:
-        found = catalogue.entries(store, map_name, limit)
-    if not found:
+        found = catalogue.entries(store, map_name, limit, offset=offset)
+        total = catalogue.count_entries(store, map_name)
+    if not total:
         raise click.ClickException("the catalogue is empty (no scene consolidated yet?)")
+    if not found:
+        raise click.ClickException(f"no entries after the first {total}")
     click.echo(answers.as_json(found) if as_json else "\n".join(map(catalogue.as_text, found)))
+    click.echo(f"entries {offset + 1}-{offset + len(found)} of {total}", err=True)
 
 
 @query.command("seen-before", epilog=example("pmem query seen-before CLUSTER_ID"))

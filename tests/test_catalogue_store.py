@@ -255,6 +255,15 @@ def test_the_api_and_the_cli_answer_the_same(store, week, mongo_uri, db_name):
     entries = json.loads(shown.stdout)
     assert entries == answers.plain(listed.json()["entries"])  # (moments as ISO 8601 + ns)
     assert entries[0]["now"]["last_seen"].endswith("Z") and entries[0]["now"]["last_seen_ns"]
+    total = listed.json()["total"]
+    assert shown.stderr.strip() == f"entries 1-3 of {total}"
+    rest = CliRunner().invoke(main, ["query", "catalogue", "--offset", "3", "--limit", "1000",
+                                     "--json"], env=env)
+    assert [e["entry"] for e in entries + json.loads(rest.stdout)] == [
+        str(e["entry"]) for e in catalogue.entries(store, limit=1000)]
+    past = CliRunner().invoke(main, ["query", "catalogue", "--offset", str(total)], env=env)
+    assert past.exit_code == 1
+    assert past.output.strip() == f"Error: no entries after the first {total}"
     text = CliRunner().invoke(main, ["query", "seen-before", view], env=env)
     assert text.exit_code == 0 and text.stdout.startswith("inclusion 1.00")
     for args in (["query", "seen-before", "nothex"], ["query", "seen-before", "0" * 24],

@@ -846,8 +846,7 @@ def catalogue_entries(settings: Settings, map_name: str | None, limit: int, offs
     from percept_memory.queries import catalogue
 
     with MemoryStore.open(settings) as store:
-        found = catalogue.entries(store, map_name, limit, offset=offset)
-        total = catalogue.count_entries(store, map_name)
+        found, total = catalogue.page(store, map_name, limit, offset)
     if not total:
         raise click.ClickException("the catalogue is empty (no scene consolidated yet?)")
     if not found:

@@ -11,6 +11,7 @@ import sys
 import textwrap
 import urllib.error
 import urllib.request
+from functools import cache
 
 import pytest
 from pymongo import MongoClient
@@ -140,6 +141,7 @@ def test_an_installed_package_declares_its_types_by_entry_point(monkeypatch):
     point = metadata.EntryPoint("lab", "lab_pkg.types", modules.ENTRY_POINTS)
     monkeypatch.setattr(modules, "entry_points",
                         lambda group: [point] if group == modules.ENTRY_POINTS else [])
+    monkeypatch.setattr(modules, "declared", cache(modules.declared.__wrapped__))  # (afresh)
     assert modules.type_modules("mine, lab_pkg.types") == {
         "lab_pkg.types": "PMEM_TYPES", "mine": "PMEM_TYPES"}
     assert modules.type_modules("") == {"lab_pkg.types": "the entry point 'lab' of a package"}

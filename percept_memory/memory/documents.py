@@ -482,8 +482,8 @@ def _stored_fields(doc: Mapping) -> dict:
 def _cluster_fields(doc: Mapping) -> dict:
     """A cluster's stored fields, with how many annotations arrived when others came later."""
     fields = _stored_fields(doc)
-    if arrived(doc) < len(doc.get("annotations", ())):
-        fields[ARRIVED_KEY] = arrived(doc)
+    if (count := arrived(doc)) < len(doc.get("annotations", ())):
+        fields[ARRIVED_KEY] = count
     return fields
 
 

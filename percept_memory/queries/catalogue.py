@@ -28,6 +28,19 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
             only: list[ObjectId] | None = None, offset: int = 0) -> list[dict]:
     """The catalogue's entries (of one map, or these), the most seen first: `limit` of them
     after the first `offset`."""
+    return _ranked(store, map_name, only)[offset:offset + limit]
+
+
+def page(store: MemoryStore, map_name: str | None, limit: int,
+         offset: int) -> tuple[list[dict], int]:
+    """`limit` entries after the first `offset`, and how many there are (one read)."""
+    ranked = _ranked(store, map_name)
+    return ranked[offset:offset + limit], len(ranked)
+
+
+def _ranked(store: MemoryStore, map_name: str | None,
+            only: list[ObjectId] | None = None) -> list[dict]:
+    """Every entry (of one map, or these), the most seen first."""
     match: dict = {} if map_name is None else {"map": map_name}
     if only is not None:
         match["entry"] = {"$in": only}
@@ -43,13 +56,7 @@ def entries(store: MemoryStore, map_name: str | None = None, limit: int = 100,
     sightings = _sightings(store, object_ids, seen)
     out = [_entry(group, objects, sightings[_key(group["_id"])]) for group in groups]
     out.sort(key=lambda e: (-e["times_seen"], e["entry"]))
-    return out[offset:offset + limit]
-
-
-def count_entries(store: MemoryStore, map_name: str | None = None) -> int:
-    """How many entries the catalogue has (of one map)."""
-    return len(store.db[CATALOGUE].distinct("entry", {} if map_name is None else
-                                            {"map": map_name}))
+    return out
 
 
 def _key(entry: dict) -> tuple:

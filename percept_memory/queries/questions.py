@@ -326,13 +326,13 @@ def what_is_at(q: AtTime) -> Plan[Contents]:
     t = NOW if q.t is None else q.t
     believed = yield from latest_events((yield from ever_at(q, t)), t, q)
     ids = [e["object_id"] for e in believed]
-    names = yield from names_of(ids)
+    found = yield Find(OBJECTS, {"_id": {"$in": ids}}, {"name": 1, "position": 1})
+    names = {o["_id"]: o.get("name") for o in found}
     began = yield from stays_began(ids, t)
     if q.t is None:  # now: each where the belief puts it now, from all its sightings there
-        now = yield Find(OBJECTS, {"_id": {"$in": ids}}, {"position": 1})  # (as where-is)
-        estimated = {o["_id"]: o["position"] for o in now if o.get("position") is not None}
+        estimated = {o["_id"]: o["position"] for o in found if o.get("position") is not None}
         believed = [{**e, "position": estimated.get(e["object_id"], e.get("position"))}
-                    for e in believed]
+                    for e in believed]  # (as where-is)
     return Contents(t=t, objects=_objects_at(believed, names, began))
 
 

@@ -52,9 +52,8 @@ def catalogue_router(store: MemoryStore) -> APIRouter:
                              offset: str = "0") -> HTMLResponse:
         limit = bounded_int(limit, "limit", 1, 1000)  # (a page's own 422, not the API's JSON)
         offset = bounded_int(offset, "offset", 0, 10**9)
-        found, total, changes = await run_in_threadpool(
-            lambda: (catalogue.entries(store, map or None, limit, offset=offset),
-                     catalogue.count_entries(store, map or None),
+        (found, total), changes = await run_in_threadpool(
+            lambda: (catalogue.page(store, map or None, limit, offset),
                      catalogue.history(store, map or None, CHANGES_SHOWN)))
         for entry in found:
             entry["drawing"] = ring_drawing(entry["graph"])
@@ -83,9 +82,8 @@ def _api(store: MemoryStore) -> APIRouter:
         entries holding their models), where it is `now`
         (the one seen last) and its `graph`: its partial models and the similarity links
         between them."""
-        return await run_in_threadpool(lambda: {
-            "total": catalogue.count_entries(store, map),
-            "entries": catalogue.entries(store, map, limit, offset=offset)})
+        found, total = await run_in_threadpool(catalogue.page, store, map, limit, offset)
+        return {"total": total, "entries": found}
 
     @router.get("/history", summary="The catalogue's entries that merged or split",
                 responses=READ_ERRORS)
